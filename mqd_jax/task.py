@@ -1,0 +1,53 @@
+"""The task protocol: what a task gives the QD engine.
+
+A task is a bounded action box, a bounded 2D behavior box (plus the reachable
+part of it, for coverage), and a pure, vmappable rollout:
+
+    evaluate(actions[B, n], key) -> (behaviors[B, d], qualities[B], valid[B])
+
+`valid[b] = False` marks a failed rollout: it counts as an evaluation but is
+never inserted. Subclass `Task` (a frozen dataclass) and implement `evaluate`;
+override `reachable` if part of the behavior box cannot be reached.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Task:
+    """Base class of every task. Bounds are tuples so the task stays hashable.
+
+    Attributes:
+      action_low, action_high: per-dimension action bounds, length n.
+      behavior_low, behavior_high: the behavior box, length d.
+    """
+
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+    behavior_low: tuple[float, ...]
+    behavior_high: tuple[float, ...]
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.action_low)
+
+    @property
+    def behavior_dim(self) -> int:
+        return len(self.behavior_low)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Rolls out `actions[B, n]`; returns behaviors[B, d], qualities[B], valid[B]."""
+        raise NotImplementedError
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        """Whether each behavior `points[..., d]` is reachable (numpy, host side).
+
+        Coverage is measured over the reachable part of the behavior box only.
+        The default: the whole box.
+        """
+        return np.ones(points.shape[:-1], bool)

@@ -1,0 +1,96 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import reference
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mqd_jax import neighbours
+from mqd_jax.repertoire import ADDED, DROPPED_FULL, REJECTED, REPLACED, SKIPPED, Repertoire, insert
+
+NAMES = {SKIPPED: "skipped", ADDED: "added", REPLACED: "replaced", REJECTED: "rejected", DROPPED_FULL: "dropped"}
+K = 3
+
+
+@jax.jit
+def _insert(rep, actions, behaviors, qualities, ok, t_dist):
+    return insert(rep, actions, behaviors, qualities, ok, t_dist, K, num_near=2, chunk=8)
+
+
+def _batches(draw_seed: int, generations: int, pop: int, spread: float):
+    rng = np.random.default_rng(draw_seed)
+    for _ in range(generations):
+        # Behaviors on a coarse lattice plus noise: many near-duplicates, so
+        # replacements of pre-generation skills and of earlier candidates of the
+        # same generation both happen, and the M=2 near lists get exhausted.
+        centre = rng.integers(0, 4, (pop, 2)) * spread
+        b = (centre + rng.normal(0, spread / 3, (pop, 2))).astype(np.float32)
+        q = rng.random(pop).astype(np.float32)
+        ok = rng.random(pop) > 0.15
+        yield b, q, ok
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), capacity=st.sampled_from([6, 40]), spread=st.sampled_from([0.05, 0.2]))
+def test_insertion_matches_sequential_reference(seed, capacity, spread):
+    pop, t_dist = 12, 0.1
+    rep = Repertoire.empty(capacity, 1, 2, K + 2)
+    ref_b, ref_q = np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
+    for b, q, ok in _batches(seed, 4, pop, spread):
+        actions = jnp.asarray(np.arange(pop, dtype=np.float32)[:, None])
+        before_b, before_q = np.asarray(rep.behaviors), np.asarray(rep.qualities)
+        rep, ins = _insert(rep, actions, jnp.asarray(b), jnp.asarray(q), jnp.asarray(ok), jnp.float32(t_dist))
+        ref_b, ref_q, _, status, archived = reference.insert(ref_b, ref_q, b, q, ok, t_dist, capacity)
+        n = int(rep.count)
+        assert [NAMES[int(s)] for s in ins.status] == status
+        np.testing.assert_array_equal(np.asarray(rep.behaviors[:n]), ref_b)
+        np.testing.assert_array_equal(np.asarray(rep.qualities[:n]), ref_q)
+        assert np.asarray(rep.valid).sum() == n == len(ref_b)
+        # The archived skills, in order.
+        mask = np.asarray(ins.archived)
+        victim_old, victim_cand = np.asarray(ins.victim_slot), np.asarray(ins.victim_candidate)
+        got = []
+        for i in np.flatnonzero(mask):
+            if victim_old[i] >= 0:
+                got.append((before_b[victim_old[i]], before_q[victim_old[i]]))
+            else:
+                j = victim_cand[i] if victim_cand[i] >= 0 else i
+                got.append((b[j], q[j]))
+        assert len(got) == len(archived)
+        for (gb, gq), (rb, rq) in zip(got, archived):
+            np.testing.assert_array_equal(gb, rb)
+            assert gq == rq
+        # Novelty and the neighbour lists against brute force.
+        np.testing.assert_allclose(np.asarray(rep.novelty[:n]), reference.novelty(ref_b, K), rtol=1e-5, atol=1e-6)
+        _check_lists(rep, n)
+
+
+def _check_lists(rep, n):
+    """Every listed distance is right and every skill closer than the radius is listed."""
+    b = np.asarray(rep.behaviors[:n], np.float64)
+    d2 = ((b[:, None] - b[None]) ** 2).sum(-1)
+    lists = rep.neighbours
+    for i in range(n):
+        idx = np.asarray(lists.index[i])
+        listed = set(idx[idx >= 0].tolist())
+        np.testing.assert_allclose(np.asarray(lists.sq_dist[i])[idx >= 0], d2[i, idx[idx >= 0]], rtol=1e-4,
+                                   atol=1e-7)
+        closer = {j for j in range(n) if j != i and d2[i, j] < float(lists.radius[i]) * (1 - 1e-5)}
+        assert closer <= listed
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 300), k=st.integers(1, 9), ties=st.booleans())
+def test_k_smallest_matches_sort(seed, n, k, ties):
+    rng = np.random.default_rng(seed)
+    v = rng.random((5, n)).astype(np.float32)
+    if ties:
+        v = np.round(v * 4) / 4
+    v[rng.random((5, n)) < 0.2] = np.inf
+    vals, idx = jax.jit(neighbours.k_smallest, static_argnums=1)(jnp.asarray(v), k)
+    for r in range(5):
+        order = sorted(range(n), key=lambda j: (v[r, j], j))[:k]
+        want = [v[r, j] for j in order] + [np.inf] * (k - len(order))
+        np.testing.assert_array_equal(np.asarray(vals[r]), want)
+        want_idx = [j if np.isfinite(v[r, j]) else -1 for j in order] + [-1] * (k - len(order))
+        np.testing.assert_array_equal(np.asarray(idx[r]), want_idx)
