@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from envs import arena2d
@@ -26,12 +25,13 @@ AGENT_RADIUS = 0.02
 OBJECT_RADIUS = 0.05
 
 
-def _separate(mover: jax.Array, fixed: jax.Array, gap: float) -> jax.Array:
-    """Moves `mover` away from `fixed` along their line of centres to distance >= gap."""
+def _separate(mover: arena2d.Array, fixed: arena2d.Array, gap: float) -> arena2d.Array:
+    """Moves mover[B, 2] away from fixed[B, 2] along their line of centres to distance >= gap."""
+    xp = arena2d.xp_of(mover, fixed)
     diff = mover - fixed
-    dist = jnp.linalg.norm(diff)
-    direction = jnp.where(dist > 1e-9, diff / jnp.maximum(dist, 1e-9), jnp.array([0.0, 1.0]))
-    return jnp.where(dist < gap, fixed + direction * gap, mover)
+    dist = xp.linalg.norm(diff, axis=1, keepdims=True)
+    direction = xp.where(dist > 1e-9, diff / xp.maximum(dist, 1e-9), xp.asarray([0.0, 1.0], np.float32))
+    return xp.where(dist < gap, fixed + direction * gap, mover)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -39,26 +39,25 @@ class Object2D(Task):
     agent_start: tuple[float, float] = AGENT_START
     object_start: tuple[float, float] = OBJECT_START
 
-    def _rollout(self, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def evaluate(self, actions: arena2d.Array, key: jax.Array | None = None):
+        """Rolls out actions[B, 15]; numpy in, numpy out (JAX in, JAX out). `key` is unused."""
+        xp = arena2d.xp_of(actions)
         gap = AGENT_RADIUS + OBJECT_RADIUS
-        no_boxes = jnp.zeros((0, 4), jnp.float32)
+        no_boxes = xp.zeros((0, 4), np.float32)
 
-        def step(carry: tuple[jax.Array, jax.Array, jax.Array], delta: jax.Array):
+        def step(carry, delta):
             agent, obj, travelled = carry
             agent = arena2d.move(agent, delta, no_boxes, AGENT_RADIUS, 1 - AGENT_RADIUS)
-            new_obj = jnp.clip(_separate(obj, agent, gap), OBJECT_RADIUS, 1 - OBJECT_RADIUS)
-            agent = jnp.clip(_separate(agent, new_obj, gap), AGENT_RADIUS, 1 - AGENT_RADIUS)
-            return agent, new_obj, travelled + jnp.linalg.norm(new_obj - obj)
+            new_obj = xp.clip(_separate(obj, agent, gap), OBJECT_RADIUS, 1 - OBJECT_RADIUS)
+            agent = xp.clip(_separate(agent, new_obj, gap), AGENT_RADIUS, 1 - AGENT_RADIUS)
+            return agent, new_obj, travelled + xp.linalg.norm(new_obj - obj, axis=1)
 
-        init = (jnp.asarray(self.agent_start, jnp.float32), jnp.asarray(self.object_start, jnp.float32),
-                jnp.float32(0.0))
-        _, obj, travelled = arena2d.rollout(action, init, step)
-        return obj, travelled
-
-    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        final, travelled = jax.vmap(self._rollout)(actions)
-        shortest = jnp.linalg.norm(final - jnp.asarray(self.object_start), axis=-1)
-        return final, arena2d.path_quality(shortest, travelled), jnp.ones(actions.shape[0], bool)
+        batch = actions.shape[0]
+        start = lambda p: xp.broadcast_to(xp.asarray(p, np.float32), (batch, 2))  # noqa: E731
+        init = (start(self.agent_start), start(self.object_start), xp.zeros(batch, np.float32))
+        _, final, travelled = arena2d.rollout(actions, init, step)
+        shortest = xp.linalg.norm(final - xp.asarray(self.object_start, np.float32), axis=1)
+        return final, arena2d.path_quality(shortest, travelled), xp.ones(batch, bool)
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
         """Object centres stay OBJECT_RADIUS away from the walls."""

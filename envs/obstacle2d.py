@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from envs import arena2d
@@ -35,7 +34,7 @@ def segment_blocked(p: jax.Array, q: jax.Array, boxes: jax.Array) -> jax.Array:
     Slab test with strict inequalities, so a segment along a face or through a
     corner is not blocked. Works on numpy and JAX arrays (p, q: [..., 2]).
     """
-    xp = jnp if isinstance(p, jax.Array) or isinstance(q, jax.Array) else np
+    xp = arena2d.xp_of(p, q)
     d = q - p
     t_lo = xp.zeros(p.shape[:-1] + (boxes.shape[0],))
     t_hi = xp.ones_like(t_lo)
@@ -76,30 +75,30 @@ class Obstacle2D(Task):
         object.__setattr__(self, "_nodes", nodes)
         object.__setattr__(self, "_node_dist", dist)
 
-    def shortest_path(self, points: jax.Array) -> jax.Array:
-        """Geodesic distance from the start to each free point `points[..., 2]`."""
-        nodes = jnp.asarray(self._nodes)
-        boxes = jnp.asarray(self.obstacles, jnp.float32)
-        p = jnp.broadcast_to(points[..., None, :], points.shape[:-1] + nodes.shape)
-        seen = ~segment_blocked(jnp.broadcast_to(nodes, p.shape), p, boxes)
-        via = jnp.asarray(self._node_dist) + jnp.linalg.norm(p - nodes, axis=-1)
-        return jnp.where(seen, via, jnp.inf).min(axis=-1)
+    def shortest_path(self, points: arena2d.Array) -> arena2d.Array:
+        """Geodesic distance from the start to each free point points[B, 2]."""
+        xp = arena2d.xp_of(points)
+        nodes = xp.asarray(self._nodes)
+        p = xp.broadcast_to(points[:, None, :], (points.shape[0],) + nodes.shape)
+        seen = ~segment_blocked(xp.broadcast_to(nodes, p.shape), p, xp.asarray(self.obstacles, np.float32))
+        via = xp.asarray(self._node_dist) + xp.linalg.norm(p - nodes, axis=-1)
+        return xp.where(seen, via, xp.inf).min(axis=-1)
 
-    def _rollout(self, action: jax.Array) -> tuple[jax.Array, jax.Array]:
-        boxes = jnp.asarray(self.obstacles, jnp.float32)
+    def evaluate(self, actions: arena2d.Array, key: jax.Array | None = None):
+        """Rolls out actions[B, 9]; numpy in, numpy out (JAX in, JAX out). `key` is unused."""
+        xp = arena2d.xp_of(actions)
+        boxes = xp.asarray(self.obstacles, np.float32)
 
-        def step(carry: tuple[jax.Array, jax.Array], delta: jax.Array) -> tuple[jax.Array, jax.Array]:
+        def step(carry, delta):
             pos, travelled = carry
             new = arena2d.move(pos, delta, boxes)
-            return new, travelled + jnp.linalg.norm(new - pos)
+            return new, travelled + xp.linalg.norm(new - pos, axis=1)
 
-        init = (jnp.asarray(self.start, jnp.float32), jnp.float32(0.0))
-        return arena2d.rollout(action, init, step)
-
-    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        final, travelled = jax.vmap(self._rollout)(actions)
+        batch = actions.shape[0]
+        init = (xp.broadcast_to(xp.asarray(self.start, np.float32), (batch, 2)), xp.zeros(batch, np.float32))
+        final, travelled = arena2d.rollout(actions, init, step)
         quality = arena2d.path_quality(self.shortest_path(final), travelled)
-        return final, quality, jnp.ones(actions.shape[0], bool)
+        return final, quality, xp.ones(batch, bool)
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
         """Free space: outside every obstacle (all of it is connected to the start)."""

@@ -114,10 +114,8 @@ class NeighbourLists:
         return self.sq_dist.shape[1]
 
 
-def _recompute(lists: NeighbourLists, rows: jax.Array, behaviors: jax.Array, valid: jax.Array) -> NeighbourLists:
-    """Rebuilds the lists of `rows` from all valid skills."""
-    d = sq_dists(behaviors[rows], behaviors)
-    d = jnp.where(valid[None] & (rows[:, None] != jnp.arange(valid.shape[0])), d, jnp.inf)
+def _recompute(lists: NeighbourLists, rows: jax.Array, d: jax.Array) -> NeighbourLists:
+    """Rebuilds the lists of `rows` from their distances d[len(rows), C] to every skill (inf: none)."""
     v, i = k_smallest(d, lists.length + 1)
     return NeighbourLists(
         sq_dist=lists.sq_dist.at[rows].set(v[:, :-1], mode="drop"),
@@ -143,9 +141,9 @@ def update(
     lists: NeighbourLists,
     behaviors: jax.Array,
     valid: jax.Array,
+    new_d: jax.Array,
     removed: jax.Array,
     new_slots: jax.Array,
-    new_mask: jax.Array,
     k: int,
     chunk: int,
 ) -> NeighbourLists:
@@ -154,22 +152,37 @@ def update(
     Args:
       lists: lists exact for the repertoire before the generation.
       behaviors: [C, d] behaviors after the generation; valid: [C] their mask.
+      new_d: [P, C] squared distances from each new skill to every skill after
+        the generation (inf for invalid slots).
       removed: [C] slots whose previous skill was replaced this generation.
-      new_slots: [P] slots written this generation; new_mask: [P] which are real.
+      new_slots: [P] slot of each new skill; C for a candidate that is not one.
       k: the novelty's K; chunk: rows processed at a time.
     """
+    capacity = valid.shape[0]
     gone = (lists.index >= 0) & removed[jnp.maximum(lists.index, 0)]
     lists = lists.replace(sq_dist=jnp.where(gone, jnp.inf, lists.sq_dist), index=jnp.where(gone, -1, lists.index))
-    changed = jnp.zeros_like(valid).at[new_slots].set(new_mask, mode="drop")
+    is_new = new_slots < capacity
+    changed = jnp.zeros_like(valid).at[new_slots].set(True, mode="drop")
 
-    new_d = sq_dists(behaviors[new_slots], behaviors)
-    hit = new_mask[:, None] & (valid & ~changed)[None] & (new_d < lists.radius[None])
-    new_d = jnp.where(hit, new_d, jnp.inf)
-    lists = for_each_chunk(hit.any(0), chunk, lambda rows, ls: _merge(ls, rows, new_d, new_slots), lists)
+    # New skills' own lists, from the distances at hand (the diagonal is self).
+    own = jnp.where(jnp.arange(capacity) == new_slots[:, None], jnp.inf, new_d)
+    lists = for_each_chunk(is_new, chunk, lambda rows, ls: _recompute(
+        ls, jnp.where(rows < is_new.shape[0], new_slots[jnp.minimum(rows, is_new.shape[0] - 1)], capacity),
+        own[rows]), lists)
 
+    hit = is_new[:, None] & (valid & ~changed)[None] & (new_d < lists.radius[None])
+    merged = jnp.where(hit, new_d, jnp.inf)
+    lists = for_each_chunk(hit.any(0), chunk, lambda rows, ls: _merge(ls, rows, merged, new_slots), lists)
+
+    # Lists that removals left with fewer than k certain neighbours: recompute.
     certain = jnp.isfinite(lists.sq_dist).sum(1)
     depleted = valid & (certain < k) & jnp.isfinite(lists.radius)
-    return for_each_chunk(changed | depleted, chunk, lambda rows, ls: _recompute(ls, rows, behaviors, valid), lists)
+
+    def rebuild(rows: jax.Array, ls: NeighbourLists) -> NeighbourLists:
+        d = sq_dists(behaviors[rows], behaviors)
+        return _recompute(ls, rows, jnp.where(valid[None] & (rows[:, None] != jnp.arange(capacity)), d, jnp.inf))
+
+    return for_each_chunk(depleted, chunk, rebuild, lists)
 
 
 def novelty(lists: NeighbourLists, valid: jax.Array, k: int) -> jax.Array:

@@ -89,14 +89,16 @@ class Insertion:
         return (self.status == REJECTED) | (self.status == DROPPED_FULL) | (self.status == REPLACED)
 
 
-def _sequential_rule(rep: Repertoire, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
+def _sequential_rule(rep: Repertoire, d_old: jax.Array, d_cand: jax.Array, qualities: jax.Array, ok: jax.Array,
                      t_dist: jax.Array, num_near: int) -> Insertion:
-    """Runs the insertion rule candidate by candidate; writes nothing yet."""
-    capacity, pop = rep.capacity, behaviors.shape[0]
+    """Runs the insertion rule candidate by candidate; writes nothing yet.
+
+    d_old: [P, C] squared distances from candidates to the skills before the
+    generation (inf for empty slots); d_cand: [P, P] between candidates.
+    """
+    capacity, pop = rep.capacity, d_cand.shape[0]
     t2 = t_dist**2
-    d_old = jnp.where(rep.valid[None], neighbours.sq_dists(behaviors, rep.behaviors), jnp.inf)
     near_d, near_i = neighbours.k_smallest(d_old, min(num_near, capacity))
-    d_cand = neighbours.sq_dists(behaviors, behaviors)
 
     def nearest_old(i: jax.Array, removed: jax.Array) -> tuple[jax.Array, jax.Array]:
         usable = (near_i[i] >= 0) & ~removed[jnp.maximum(near_i[i], 0)]
@@ -146,9 +148,44 @@ def _sequential_rule(rep: Repertoire, behaviors: jax.Array, qualities: jax.Array
     return jax.lax.fori_loop(0, pop, step, init)
 
 
+def _prefix(tree: Repertoire | Insertion, size: int, capacity: int) -> Repertoire | Insertion:
+    """The per-slot arrays of `tree` cut to their first `size` slots."""
+    return jax.tree.map(lambda x: x[:size] if x.ndim and x.shape[0] == capacity else x, tree)
+
+
+def _write_prefix(full: Repertoire, part: Repertoire) -> Repertoire:
+    return jax.tree.map(lambda x, y: x.at[:y.shape[0]].set(y) if x.ndim else y, full, part)
+
+
 def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
-           t_dist: jax.Array, k: int, num_near: int, chunk: int) -> tuple[Repertoire, Insertion]:
+           t_dist: jax.Array, k: int, num_near: int, chunk: int, min_prefix: int = 512
+           ) -> tuple[Repertoire, Insertion]:
     """Inserts a generation of candidates and updates novelty.
+
+    Skills fill a prefix of the arrays, so the work is done on the smallest
+    prefix of C / 2^j slots (at least `min_prefix`) that can hold every skill
+    after this generation: its cost follows the repertoire's size, not C.
+    See `insert_dense` for the arguments.
+    """
+    capacity, pop = rep.capacity, behaviors.shape[0]
+    sizes = sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
+
+    def branch(size: int):
+        def run(rep: Repertoire) -> tuple[Repertoire, Insertion]:
+            part, ins = insert_dense(_prefix(rep, size, capacity), actions, behaviors, qualities, ok, t_dist,
+                                     k, num_near, chunk)
+            removed = jnp.zeros(capacity, bool).at[:size].set(ins.removed)
+            return _write_prefix(rep, part), ins.replace(removed=removed)
+        return run
+
+    need = rep.count + pop
+    index = jnp.searchsorted(jnp.asarray(sizes), jnp.minimum(need, capacity))
+    return jax.lax.switch(index, [branch(s) for s in sizes], rep)
+
+
+def insert_dense(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
+                 t_dist: jax.Array, k: int, num_near: int, chunk: int) -> tuple[Repertoire, Insertion]:
+    """Inserts a generation of candidates into all C slots and updates novelty.
 
     Args:
       rep: the repertoire before the generation.
@@ -161,12 +198,17 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     Returns:
       The new repertoire (novelty up to date) and what happened to each candidate.
     """
-    ins = _sequential_rule(rep, behaviors, qualities, ok, t_dist, num_near)
+    d_old = jnp.where(rep.valid[None], neighbours.sq_dists(behaviors, rep.behaviors), jnp.inf)
+    d_cand = neighbours.sq_dists(behaviors, behaviors)
+    ins = _sequential_rule(rep, d_old, d_cand, qualities, ok, t_dist, num_near)
     slot = jnp.where(ins.alive, ins.slot, rep.capacity)
     count = rep.count + (ins.status == ADDED).sum(dtype=jnp.int32)
     valid = jnp.arange(rep.capacity) < count
     new_behaviors = rep.behaviors.at[slot].set(behaviors, mode="drop")
-    lists = neighbours.update(rep.neighbours, new_behaviors, valid, ins.removed, slot, ins.alive, k, chunk)
+    # Distances to the repertoire after the generation: the written columns now
+    # hold candidates.
+    d_new = d_old.at[:, slot].set(d_cand, mode="drop")
+    lists = neighbours.update(rep.neighbours, new_behaviors, valid, d_new, ins.removed, slot, k, chunk)
     rep = Repertoire(
         actions=rep.actions.at[slot].set(actions, mode="drop"),
         behaviors=new_behaviors,

@@ -15,7 +15,7 @@ from mqd_jax.config import Config, Params
 from mqd_jax.task import Task
 
 # Nearest pre-generation skills precomputed per candidate (see repertoire.py).
-_NUM_NEAR = 8
+_NUM_NEAR = 4
 
 
 @struct.dataclass
@@ -96,7 +96,7 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
 
     before = state.repertoire
     rep, ins = repertoire.insert(before, actions, behaviors, qualities, ok, params.t_dist, cfg.k, _NUM_NEAR,
-                                 chunk=max(cfg.population_size, 32))
+                                 chunk=32)
 
     # Archive: the candidate itself, or the skill it replaced.
     from_old = ins.victim_slot >= 0
@@ -108,8 +108,10 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
     arch = archive_lib.push(state.archive, pick(before.actions, actions), pick(before.behaviors, behaviors),
                             pick(before.qualities, qualities), ins.archived)
 
-    grid = coverage.stamp(state.coverage, before.behaviors, -ins.removed.astype(jnp.int32), params.t_dist)
-    grid = coverage.stamp(grid, behaviors, ins.alive.astype(jnp.int32), params.t_dist)
+    # Unstamp the replaced skills' disks and stamp the new skills' disks.
+    grid = coverage.stamp(
+        state.coverage, jnp.concatenate([before.behaviors[slot_old], behaviors]),
+        jnp.concatenate([-from_old.astype(jnp.int32), ins.alive.astype(jnp.int32)]), params.t_dist)
 
     evaluations = jnp.int32(cfg.population_size)
     state = State(repertoire=rep, archive=arch, coverage=grid, key=key, generation=state.generation + 1,
