@@ -36,7 +36,7 @@ def segment_blocked(p: jax.Array, q: jax.Array, boxes: jax.Array) -> jax.Array:
     """
     xp = arena2d.xp_of(p, q)
     d = q - p
-    t_lo = xp.zeros(p.shape[:-1] + (boxes.shape[0],))
+    t_lo = xp.zeros((*p.shape[:-1], boxes.shape[0]))
     t_hi = xp.ones_like(t_lo)
     inside = xp.ones_like(t_lo, dtype=bool)
     for ax in range(2):
@@ -79,7 +79,7 @@ class Obstacle2D(Task):
         """Geodesic distance from the start to each free point points[B, 2]."""
         xp = arena2d.xp_of(points)
         nodes = xp.asarray(self._nodes)
-        p = xp.broadcast_to(points[:, None, :], (points.shape[0],) + nodes.shape)
+        p = xp.broadcast_to(points[:, None, :], (points.shape[0], *nodes.shape))
         seen = ~segment_blocked(xp.broadcast_to(nodes, p.shape), p, xp.asarray(self.obstacles, np.float32))
         via = xp.asarray(self._node_dist) + xp.linalg.norm(p - nodes, axis=-1)
         return xp.where(seen, via, xp.inf).min(axis=-1)

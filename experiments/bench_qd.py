@@ -50,7 +50,7 @@ def bench_pyribs(cfg: Config, seed: int = 0) -> dict:
     archive = ProximityArchive(solution_dim=task.action_dim, measure_dim=task.behavior_dim, k_neighbors=cfg.k,
                                novelty_threshold=cfg.t_dist, local_competition=True, seed=seed)
     emitter = IsoLineEmitter(archive, x0=(low + high) / 2, iso_sigma=cfg.iso_sigma * float(np.mean(high - low)),
-                             line_sigma=cfg.line_sigma, bounds=list(zip(low, high)),
+                             line_sigma=cfg.line_sigma, bounds=list(zip(low, high, strict=True)),
                              batch_size=cfg.population_size, seed=seed)
     scheduler = Scheduler(archive, [emitter])
     eval_s = 0.0

@@ -38,7 +38,7 @@ class CoverageGrid:
 
 def cell_centres(low: np.ndarray, high: np.ndarray, resolution: int) -> np.ndarray:
     """[G, G, 2] centres of the grid's cells (first axis: x)."""
-    axes = [lo + (np.arange(resolution) + 0.5) * (hi - lo) / resolution for lo, hi in zip(low, high)]
+    axes = [lo + (np.arange(resolution) + 0.5) * (hi - lo) / resolution for lo, hi in zip(low, high, strict=True)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
 

@@ -16,7 +16,7 @@ def insert(behaviors, qualities, cand_b, cand_q, ok, t_dist, capacity):
     owner = list(range(len(b)))  # -1 - i for candidate i
     status, archived = [], []
     t2 = np.float32(t_dist) ** 2
-    for i, (c, cq) in enumerate(zip(np.asarray(cand_b, np.float32), np.asarray(cand_q, np.float32))):
+    for i, (c, cq) in enumerate(zip(np.asarray(cand_b, np.float32), np.asarray(cand_q, np.float32), strict=True)):
         if not ok[i]:
             status.append("skipped")
             continue

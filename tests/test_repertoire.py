@@ -57,7 +57,7 @@ def test_insertion_matches_sequential_reference(seed, capacity, spread):
                 j = victim_cand[i] if victim_cand[i] >= 0 else i
                 got.append((b[j], q[j]))
         assert len(got) == len(archived)
-        for (gb, gq), (rb, rq) in zip(got, archived):
+        for (gb, gq), (rb, rq) in zip(got, archived, strict=True):
             np.testing.assert_array_equal(gb, rb)
             assert gq == rq
         # Novelty and the neighbour lists against brute force.

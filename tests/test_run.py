@@ -1,0 +1,97 @@
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mqd_jax import Config, run_mqd
+
+
+def assert_same(a, b):
+    """Exact for integers and masks; floats may differ in the last bit when vmap reorders a reduction."""
+    a, b = np.asarray(a), np.asarray(b)
+    if np.issubdtype(a.dtype, np.floating):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    else:
+        np.testing.assert_array_equal(a, b)
+
+
+def tiny(**kw):
+    base = dict(population_size=16, max_generations=12, capacity=256, archive_capacity=64)
+    return Config(**{**base, **kw})
+
+
+@pytest.mark.parametrize("task", ["obstacle2d", "object2d"])
+def test_coverage_grows_and_metrics_are_consistent(task):
+    cfg = tiny(task=task, max_generations=20, population_size=32)
+    state, m = run_mqd(jax.random.PRNGKey(0), cfg)
+    cov = np.asarray(m["coverage"])
+    assert cov[-1] > cov[0] > 0
+    assert m["coverage"].shape == (cfg.max_generations,)
+    pop = cfg.population_size
+    np.testing.assert_array_equal(m["evaluations"], pop)
+    np.testing.assert_array_equal(m["num_evaluations"], pop * np.arange(1, cfg.max_generations + 1))
+    np.testing.assert_array_equal(np.cumsum(m["added"]), m["repertoire_size"])
+    outcomes = m["added"] + m["replaced"] + m["rejected"] + m["dropped_full"] + m["invalid"]
+    np.testing.assert_array_equal(outcomes, pop)
+    rep = state.repertoire
+    n = int(rep.count)
+    assert int(rep.valid.sum()) == n and bool(rep.valid[:n].all())
+    # Every evaluated skill that was not added went to the archive, or replaced one that did.
+    assert int(state.archive.total) == int(m["num_evaluations"][-1] - m["invalid"].sum() - m["added"].sum())
+    q = np.asarray(rep.qualities[:n])
+    assert float(m["mean_quality"][-1]) == pytest.approx(q.mean(), rel=1e-5)
+    low, high = np.asarray(cfg_task(cfg).action_low), np.asarray(cfg_task(cfg).action_high)
+    a = np.asarray(rep.actions[:n])
+    assert np.all((a >= low) & (a <= high))
+
+
+def cfg_task(cfg):
+    import envs
+
+    return envs.make(cfg.task)
+
+
+def test_same_key_same_result_and_vmap_over_keys():
+    cfg = tiny()
+    keys = jax.random.split(jax.random.PRNGKey(3), 3)
+    s1, m1 = run_mqd(keys[1], cfg)
+    s2, m2 = run_mqd(keys[1], cfg)
+    for a, b in zip(jax.tree.leaves((s1, m1)), jax.tree.leaves((s2, m2)), strict=True):
+        np.testing.assert_array_equal(a, b)
+    sv, mv = jax.vmap(lambda k: run_mqd(k, cfg))(keys)
+    for a, b in zip(jax.tree.leaves((s1, m1)), jax.tree.leaves((sv, mv)), strict=True):
+        assert_same(a, b[1])
+
+
+def test_traced_params_match_static_config_and_vmap():
+    cfg = tiny()
+    other = dataclasses.replace(cfg, iso_sigma=0.1, t_dist=0.015)
+    _, want = run_mqd(jax.random.PRNGKey(0), other)
+    params = jax.tree.map(lambda a, b: jnp.stack([a, b]), cfg.params(), other.params())
+    _, got = jax.vmap(lambda p: run_mqd(jax.random.PRNGKey(0), cfg, p))(params)
+    for key in want:
+        assert_same(got[key][1], want[key])
+
+
+def test_full_repertoire_counts_dropped_niches_and_keeps_replacing():
+    cfg = tiny(capacity=20, population_size=16, max_generations=10)
+    state, m = run_mqd(jax.random.PRNGKey(0), cfg)
+    assert int(state.repertoire.count) == 20
+    assert int(m["dropped_full"].sum()) > 0
+    full = np.asarray(m["repertoire_size"]) == 20
+    assert np.asarray(m["replaced"])[full].sum() > 0
+
+
+def test_qd_beats_random_on_object2d_at_equal_evaluations():
+    # Measured on 8 fixed seeds: QD mean coverage 0.113 (min 0.058), RANDOM 0.044 (max 0.048).
+    keys = jax.random.split(jax.random.PRNGKey(0), 8)
+    cov = {}
+    for alg in ("qd", "random"):
+        cfg = Config(task="object2d", algorithm=alg, population_size=32, max_generations=40, capacity=512,
+                     archive_capacity=256)
+        _, m = jax.vmap(lambda k, c=cfg: run_mqd(k, c))(keys)
+        cov[alg] = np.asarray(m["coverage"][:, -1])
+    assert np.all(cov["qd"] > cov["random"])
+    assert cov["qd"].mean() > 1.5 * cov["random"].mean()
