@@ -8,12 +8,10 @@ import numpy as np
 def insert(behaviors, qualities, cand_b, cand_q, ok, t_dist, capacity):
     """The paper's sequential insertion rule, one candidate at a time.
 
-    Returns (behaviors, qualities, slots written per candidate or -1, statuses, archived
-    (behavior, quality) pairs in order, dropped count).
+    Returns (behaviors, qualities, statuses, archived (behavior, quality) pairs in order).
     """
     b = [np.asarray(x, np.float32) for x in behaviors]
     q = [np.float32(x) for x in qualities]
-    owner = list(range(len(b)))  # -1 - i for candidate i
     status, archived = [], []
     t2 = np.float32(t_dist) ** 2
     for i, (c, cq) in enumerate(zip(np.asarray(cand_b, np.float32), np.asarray(cand_q, np.float32), strict=True)):
@@ -27,19 +25,18 @@ def insert(behaviors, qualities, cand_b, cand_q, ok, t_dist, capacity):
             if len(b) < capacity:
                 b.append(c)
                 q.append(cq)
-                owner.append(-1 - i)
                 status.append("added")
             else:
                 status.append("dropped")
                 archived.append((c, cq))
         elif cq > q[j]:
             archived.append((b[j], q[j]))
-            b[j], q[j], owner[j] = c, cq, -1 - i
+            b[j], q[j] = c, cq
             status.append("replaced")
         else:
             status.append("rejected")
             archived.append((c, cq))
-    return np.array(b).reshape(-1, 2), np.array(q, np.float32), owner, status, archived
+    return np.array(b).reshape(-1, 2), np.array(q, np.float32), status, archived
 
 
 def novelty(behaviors, k):

@@ -40,7 +40,7 @@ def test_insertion_matches_sequential_reference(seed, capacity, spread):
         actions = jnp.asarray(np.arange(pop, dtype=np.float32)[:, None])
         before_b, before_q = np.asarray(rep.behaviors), np.asarray(rep.qualities)
         rep, ins = _insert(rep, actions, jnp.asarray(b), jnp.asarray(q), jnp.asarray(ok), jnp.float32(t_dist))
-        ref_b, ref_q, _, status, archived = reference.insert(ref_b, ref_q, b, q, ok, t_dist, capacity)
+        ref_b, ref_q, status, archived = reference.insert(ref_b, ref_q, b, q, ok, t_dist, capacity)
         n = int(rep.count)
         assert [NAMES[int(s)] for s in ins.status] == status
         np.testing.assert_array_equal(np.asarray(rep.behaviors[:n]), ref_b)
