@@ -148,7 +148,7 @@ def _sequential_rule(rep: Repertoire, d_old: jax.Array, d_cand: jax.Array, quali
     return jax.lax.fori_loop(0, pop, step, init)
 
 
-def _prefix(tree: Repertoire | Insertion, size: int, capacity: int) -> Repertoire | Insertion:
+def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
     """The per-slot arrays of `tree` cut to their first `size` slots."""
     return jax.tree.map(lambda x: x[:size] if x.ndim and x.shape[0] == capacity else x, tree)
 
