@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -14,10 +15,31 @@ import numpy as np
 from mqd_jax.config import Config
 from mqd_jax.run import init, run_generations
 
+PRESETS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
+# Short flags kept from the first versions of the CLI.
+_ALIASES = {"max_generations": ["--generations"], "population_size": ["--population"]}
+
+
+def _add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per Config field (`--t-nov 0.05`, `--budgeted/--no-budgeted`); unset flags keep the preset's value."""
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="paper-2d")
+    for field in dataclasses.fields(Config):
+        flags = ["--" + field.name.replace("_", "-"), *_ALIASES.get(field.name, [])]
+        if isinstance(field.default, bool):
+            parser.add_argument(*flags, dest=field.name, action=argparse.BooleanOptionalAction, default=None)
+        else:
+            parser.add_argument(*flags, dest=field.name, type=type(field.default), default=None,
+                                help=f"Config.{field.name} (default: the preset's, {field.default!r} in Config)")
+
+
+def _config(args: argparse.Namespace) -> Config:
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(Config) if getattr(args, f.name) is not None}
+    # The main job is a short run: 100 generations unless told otherwise.
+    return PRESETS[args.preset](**{"max_generations": 100, **given})
+
 
 def _run(args: argparse.Namespace) -> None:
-    cfg = Config.paper_2d(task=args.task, algorithm=args.algorithm, max_generations=args.generations,
-                          population_size=args.population, capacity=args.capacity)
+    cfg = _config(args)
     chunk = max(1, min(args.chunk, cfg.max_generations))
     step = jax.jit(run_generations, static_argnums=(1, 3))
     state, params = init(jax.random.PRNGKey(args.seed), cfg), cfg.params()
@@ -29,9 +51,10 @@ def _run(args: argparse.Namespace) -> None:
         state, m = step(state, cfg, params, n)
         history.append(jax.tree.map(np.asarray, m))
         done += n
+        discarded = sum(int(h["discarded"].sum()) for h in history)
         print(f"generation {done:4d}  coverage {m['coverage'][-1]:.3f}  size {int(m['repertoire_size'][-1]):5d}  "
-              f"evaluations {int(m['num_evaluations'][-1]):7d}  {done / (time.perf_counter() - start):.1f} gen/s",
-              flush=True)
+              f"evaluations {int(m['num_evaluations'][-1]):7d}  discarded {discarded:6d}  "
+              f"{done / (time.perf_counter() - start):.1f} gen/s", flush=True)
     metrics = {k: np.concatenate([h[k] for h in history]) for k in history[0]}
     dropped = int(metrics["dropped_full"].sum())
     if dropped:
@@ -41,7 +64,8 @@ def _run(args: argparse.Namespace) -> None:
           f"{time.perf_counter() - start:.1f} s (compilation included)")
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "metrics.json"), "w") as f:
-        json.dump({k: v.tolist() for k, v in metrics.items()}, f)
+        # NaN (a metric that does not apply) becomes null: strict JSON.
+        json.dump({k: [None if x != x else x for x in v.tolist()] for k, v in metrics.items()}, f)
     n = int(state.repertoire.count)
     np.savez(os.path.join(args.out, "repertoire.npz"), actions=np.asarray(state.repertoire.actions[:n]),
              behaviors=np.asarray(state.repertoire.behaviors[:n]), qualities=np.asarray(state.repertoire.qualities[:n]))
@@ -71,11 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="mqd", description="Model-Based Quality-Diversity search in JAX")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run one search and write metrics, repertoire and a plot")
-    run.add_argument("--task", default="obstacle2d")
-    run.add_argument("--algorithm", default="qd", choices=["mqd", "qd", "random"])
-    run.add_argument("--generations", type=int, default=100)
-    run.add_argument("--population", type=int, default=100)
-    run.add_argument("--capacity", type=int, default=4096)
+    _add_config_flags(run)
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--chunk", type=int, default=25, help="generations per compiled chunk (one progress line)")
     run.add_argument("--out", default="results/run")

@@ -86,6 +86,11 @@ class Config:
     neighbour_slack: int = 3
     # Cells per behavior-space axis of the coverage grid.
     coverage_resolution: int = 256
+    # Budgeted filtering (M-QD only; off is the paper's filter): sample
+    # `pool_factor` x population candidates, rank them with the model and
+    # evaluate exactly `population_size` of them (see filter.budgeted_order).
+    budgeted: bool = False
+    pool_factor: int = 4
 
     def __post_init__(self) -> None:
         from envs import registered_tasks
@@ -95,10 +100,10 @@ class Config:
                f"one of the registered tasks {sorted(tasks)}")
         _check(self.algorithm in ALGORITHMS, "algorithm", self.algorithm, f"one of {ALGORITHMS}")
         for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1),
-                         ("batch_size", 1), ("num_batches", 0), ("warmup_samples", 0),
+                         ("batch_size", 1), ("num_batches", 1), ("warmup_samples", 0),
                          ("hidden_size", 1), ("adaptation_steps", 0), ("capacity", 1),
                          ("archive_capacity", 1), ("neighbour_slack", 0),
-                         ("coverage_resolution", 8)):
+                         ("coverage_resolution", 8), ("pool_factor", 1)):
             v = getattr(self, name)
             _check(_is_int(v) and v >= lo, name, v, f"an int >= {lo}")
         for name in ("t_dist", "learning_rate", "adaptation_step_size"):
@@ -108,6 +113,12 @@ class Config:
             v = getattr(self, name)
             _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
         _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
+        _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
+        _check(not self.budgeted or self.algorithm == "mqd", "budgeted", self.budgeted,
+               f"False unless algorithm='mqd' (it is {self.algorithm!r})")
+        budget = self.max_generations * self.population_size
+        _check(self.algorithm != "mqd" or self.warmup_samples < budget, "warmup_samples", self.warmup_samples,
+               f"an int < max_generations * population_size ({budget}) for M-QD, or the model is never used")
         _check(self.population_size <= self.capacity, "population_size", self.population_size,
                f"an int <= capacity ({self.capacity})")
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -10,7 +11,8 @@ import numpy as np
 from flax import struct
 
 from mqd_jax import archive as archive_lib
-from mqd_jax import coverage, repertoire, selection, variation
+from mqd_jax import coverage, model, repertoire, selection, variation
+from mqd_jax import filter as model_filter
 from mqd_jax.config import Config, Params
 from mqd_jax.task import Task
 
@@ -26,6 +28,7 @@ class State:
       repertoire: the skills found so far (capacity C).
       archive: skills rejected or replaced (ring buffer of size A).
       coverage: coverage grid of the repertoire's disks.
+      model: M-QD's forward model (initialised, never trained, for QD and RANDOM).
       key: PRNG key for the next generation.
       generation: int32, generations done.
       num_evaluations: int32, rollouts evaluated so far.
@@ -34,6 +37,7 @@ class State:
     repertoire: repertoire.Repertoire
     archive: archive_lib.Archive
     coverage: coverage.CoverageGrid
+    model: model.ModelState
     key: jax.Array
     generation: jax.Array
     num_evaluations: jax.Array
@@ -56,41 +60,80 @@ def _reachable(cfg: Config) -> np.ndarray:
 
 
 def init(key: jax.Array, cfg: Config) -> State:
-    """The state before the first generation: empty repertoire and archive."""
+    """The state before the first generation: empty repertoire and archive, random model."""
     task = get_task(cfg)
     n, d = task.action_dim, task.behavior_dim
+    key, k_model = jax.random.split(key)
     return State(
         repertoire=repertoire.Repertoire.empty(cfg.capacity, n, d, cfg.neighbours),
         archive=archive_lib.Archive.empty(cfg.archive_capacity, n, d),
         coverage=coverage.empty(np.asarray(task.behavior_low), np.asarray(task.behavior_high),
                                 _reachable(cfg), cfg.t_dist),
+        model=model.init(k_model, cfg, task),
         key=key,
         generation=jnp.int32(0),
         num_evaluations=jnp.int32(0),
     )
 
 
-def _candidates(key: jax.Array, state: State, cfg: Config, params: Params, task: Task) -> jax.Array:
-    """[P, n] actions: uniform for RANDOM and while the repertoire is empty, else iso+line children."""
+def _candidates(key: jax.Array, state: State, cfg: Config, params: Params, task: Task, num: int) -> jax.Array:
+    """[num, n] actions: uniform for RANDOM and while the repertoire is empty, else iso+line children."""
     low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
     k_uniform, k_parents, k_vary = jax.random.split(key, 3)
-    fresh = variation.uniform(k_uniform, cfg.population_size, low, high)
+    fresh = variation.uniform(k_uniform, num, low, high)
     if cfg.algorithm == "random":
         return fresh
     rep = state.repertoire
-    parents = selection.sample_parents(k_parents, rep.novelty, rep.valid, 2 * cfg.population_size)
-    x = rep.actions[parents].reshape(2, cfg.population_size, -1)
+    parents = selection.sample_parents(k_parents, rep.novelty, rep.valid, 2 * num)
+    x = rep.actions[parents].reshape(2, num, -1)
     children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma, params.line_sigma, low, high)
     return jnp.where(rep.count > 0, children, fresh)
 
 
+class _Proposal(NamedTuple):
+    actions: jax.Array  # [P, n] the generation's candidates
+    evaluate: jax.Array  # [P] bool, those to roll out
+    pred_behaviors: jax.Array  # [P, d] the model's predictions (M-QD), else NaN
+    discarded: jax.Array  # int32, candidates the model turned down
+
+
+def _propose(key: jax.Array, state: State, cfg: Config, params: Params, task: Task) -> _Proposal:
+    """Variation and, for M-QD after warm-up, the model's filter (Algorithm 1)."""
+    pop = cfg.population_size
+    if cfg.algorithm != "mqd":
+        actions = _candidates(key, state, cfg, params, task, pop)
+        return _Proposal(actions, jnp.ones(pop, bool), jnp.full((pop, task.behavior_dim), jnp.nan), jnp.int32(0))
+    warm_up = state.num_evaluations < cfg.warmup_samples
+    pool = _candidates(key, state, cfg, params, task, pop * cfg.pool_factor if cfg.budgeted else pop)
+    pred_b, pred_q = model.predict(state.model, pool, cfg, task)
+    novelty, improvement = model_filter.predicted_scores(pred_b, pred_q, state.repertoire, cfg.k)
+    if cfg.budgeted:
+        # During warm-up the pool's first P candidates stand in for QD's.
+        top = jnp.where(warm_up, jnp.arange(pop), model_filter.budgeted_order(novelty, improvement, params.t_nov)[:pop])
+        discarded = jnp.where(warm_up, 0, pool.shape[0] - pop).astype(jnp.int32)
+        return _Proposal(pool[top], jnp.ones(pop, bool), pred_b[top], discarded)
+    evaluate = warm_up | model_filter.passes(novelty, improvement, params.t_nov, params.t_qua)
+    return _Proposal(pool, evaluate, pred_b, pop - evaluate.sum(dtype=jnp.int32))
+
+
+def _train(state: State, rep: repertoire.Repertoire, key: jax.Array, cfg: Config, params: Params,
+           task: Task) -> tuple[model.ModelState, jax.Array]:
+    """Trains M-QD's model once warm-up is over; the loss is NaN when it does not train."""
+    if cfg.algorithm != "mqd":
+        return state.model, jnp.float32(jnp.nan)
+    due = (state.num_evaluations >= cfg.warmup_samples) & (rep.count > 0)
+    return jax.lax.cond(due, lambda: model.train(state.model, key, rep, cfg, task, params.learning_rate),
+                        lambda: (state.model, jnp.float32(jnp.nan)))
+
+
 def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
-    """One generation: variation, rollouts, sequential insertion, novelty and metrics."""
+    """One generation: variation, model filter, rollouts, sequential insertion, novelty, training, metrics."""
     task = get_task(cfg)
-    key, k_cand, k_eval = jax.random.split(state.key, 3)
-    actions = _candidates(k_cand, state, cfg, params, task)
-    behaviors, qualities, valid = task.evaluate(actions, k_eval)
-    ok = valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
+    key, k_cand, k_eval, k_train = jax.random.split(state.key, 4)
+    proposal = _propose(k_cand, state, cfg, params, task)
+    actions = proposal.actions
+    behaviors, qualities, valid = task.evaluate_masked(actions, k_eval, proposal.evaluate)
+    ok = proposal.evaluate & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
     behaviors = jnp.where(ok[:, None], behaviors, 0.0)
     qualities = jnp.where(ok, qualities, 0.0)
 
@@ -113,9 +156,14 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
         state.coverage, jnp.concatenate([before.behaviors[slot_old], behaviors]),
         jnp.concatenate([-from_old.astype(jnp.int32), ins.alive.astype(jnp.int32)]), params.t_dist)
 
-    evaluations = jnp.int32(cfg.population_size)
-    state = State(repertoire=rep, archive=arch, coverage=grid, key=key, generation=state.generation + 1,
-                  num_evaluations=state.num_evaluations + evaluations)
+    evaluations = proposal.evaluate.sum(dtype=jnp.int32)
+    state = state.replace(num_evaluations=state.num_evaluations + evaluations)
+    # Prediction error on this generation's rollouts, before they train the model.
+    sq_err = jnp.where(ok[:, None], (proposal.pred_behaviors - behaviors) ** 2, 0.0).sum()
+    prediction_error = jnp.where(ok.any(), sq_err / (ok.sum() * task.behavior_dim), jnp.nan)
+    trained, loss = _train(state, rep, k_train, cfg, params, task)
+    state = State(repertoire=rep, archive=arch, coverage=grid, model=trained, key=key,
+                  generation=state.generation + 1, num_evaluations=state.num_evaluations)
     count = lambda s: (ins.status == s).sum(dtype=jnp.int32)  # noqa: E731
     metrics = {
         "coverage": coverage.fraction(grid),
@@ -127,7 +175,10 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
         "replaced": count(repertoire.REPLACED),
         "rejected": count(repertoire.REJECTED),
         "dropped_full": count(repertoire.DROPPED_FULL),
-        "invalid": (~ok).sum(dtype=jnp.int32),
+        "invalid": (proposal.evaluate & ~ok).sum(dtype=jnp.int32),
+        "discarded": proposal.discarded,
+        "model_loss": loss,
+        "prediction_error": prediction_error,
     }
     return state, metrics
 
@@ -150,8 +201,16 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
     Returns:
       The final state and a dict of per-generation metrics, each of shape
       (max_generations,): coverage, mean_quality, repertoire_size,
-      num_evaluations (cumulative), evaluations, added, replaced, rejected,
-      dropped_full, invalid.
+      num_evaluations (cumulative), evaluations (rollouts this generation),
+      added, replaced, rejected, dropped_full, invalid (evaluated, but failed
+      or non-finite), discarded (turned down by M-QD's model), model_loss
+      (mean training loss of the generation's mini-batches) and
+      prediction_error (behavior MSE in real units of the model's predictions
+      on this generation's valid rollouts, before training on them). The
+      last two are NaN where they do not apply (QD, RANDOM, no training or no
+      valid rollout).
     """
-    params = cfg.params() if params is None else params
+    # The barrier keeps XLA from folding the config's constants into the
+    # arithmetic, which would round differently from passing the same values.
+    params = jax.lax.optimization_barrier(cfg.params()) if params is None else params
     return run_generations(init(key, cfg), cfg, params, cfg.max_generations)

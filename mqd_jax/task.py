@@ -7,12 +7,16 @@ part of it, for coverage), and a pure, vmappable rollout:
 
 `valid[b] = False` marks a failed rollout: it counts as an evaluation but is
 never inserted. Subclass `Task` (a frozen dataclass) and implement `evaluate`;
-override `reachable` if part of the behavior box cannot be reached.
+override `reachable` if part of the behavior box cannot be reached, and
+`quality_range` (a class attribute, default (0, 1)) if qualities lie elsewhere:
+M-QD's model maps it to its tanh output range. A backend that can skip
+rollouts (a host callback) overrides `evaluate_masked`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import numpy as np
@@ -25,7 +29,11 @@ class Task:
     Attributes:
       action_low, action_high: per-dimension action bounds, length n.
       behavior_low, behavior_high: the behavior box, length d.
+      quality_range: (low, high) of the qualities `evaluate` returns; a class
+        attribute, fixed per task. M-QD's model normalizes qualities with it.
     """
+
+    quality_range: ClassVar[tuple[float, float]] = (0.0, 1.0)
 
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
@@ -43,6 +51,16 @@ class Task:
     def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rolls out `actions[B, n]`; returns behaviors[B, d], qualities[B], valid[B]."""
         raise NotImplementedError
+
+    def evaluate_masked(self, actions: jax.Array, key: jax.Array,
+                        mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """`evaluate` for the rows where mask[B] is set; the other rows' outputs are ignored.
+
+        The default rolls out every row (a traced, vmapped rollout costs the
+        same either way); the engine discards the unmasked rows' outputs.
+        """
+        del mask
+        return self.evaluate(actions, key)
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
         """Whether each behavior `points[..., d]` is reachable (numpy, host side).

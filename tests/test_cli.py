@@ -1,3 +1,5 @@
+import argparse
+import dataclasses
 import json
 
 import jax
@@ -20,9 +22,36 @@ def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
     assert len(rep["behaviors"]) == metrics["repertoire_size"][-1]
 
 
+def test_mqd_run_mqd_writes_strict_json_with_null_for_untrained_generations(tmp_path, capsys):
+    cli.main(["run", "--algorithm", "mqd", "--generations", "4", "--population", "8", "--capacity", "64",
+              "--warmup-samples", "30", "--num-batches", "5", "--out", str(tmp_path)])
+    text = (tmp_path / "metrics.json").read_text()
+    assert "NaN" not in text
+    metrics = json.loads(text)
+    # Trained at the end of generation 4 only (32 >= 30 evaluations).
+    assert metrics["model_loss"][:3] == [None] * 3 and metrics["model_loss"][3] > 0
+    assert all(x is not None for x in metrics["prediction_error"])
+    assert "discarded      0" in capsys.readouterr().out
+
+
 def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
     with pytest.warns(UserWarning, match="raise --capacity above 10"):
         cli.main(["run", "--generations", "3", "--population", "10", "--capacity", "10", "--out", str(tmp_path)])
+
+
+def test_every_config_field_has_a_flag_and_presets_apply():
+    parser = argparse.ArgumentParser()
+    cli._add_config_flags(parser)
+    args = parser.parse_args(["--preset", "paper-robot", "--t-nov", "0.05", "--budgeted", "--algorithm", "mqd",
+                              "--population", "50"])
+    cfg = cli._config(args)
+    assert cfg == Config.paper_robot(t_nov=0.05, budgeted=True, algorithm="mqd", population_size=50)
+    assert cli._config(parser.parse_args([])) == Config(max_generations=100)
+    for field in dataclasses.fields(Config):
+        value = getattr(Config(max_generations=100), field.name)
+        flag = "--" + field.name.replace("_", "-")
+        argv = [flag] if value is True else ["--no-" + flag[2:]] if value is False else [flag, str(value)]
+        assert getattr(parser.parse_args(argv), field.name) == value
 
 
 def test_mqd_run_rejects_bad_config(tmp_path, capsys):

@@ -95,3 +95,11 @@ def test_qd_beats_random_on_object2d_at_equal_evaluations():
         cov[alg] = np.asarray(m["coverage"][:, -1])
     assert np.all(cov["qd"] > cov["random"])
     assert cov["qd"].mean() > 1.5 * cov["random"].mean()
+
+
+def test_default_params_give_the_same_run_as_the_same_params_passed_in():
+    # Without care XLA folds the config's constants into the arithmetic and rounds differently.
+    cfg = Config(max_generations=10, capacity=1024)
+    key = jax.random.PRNGKey(0)
+    for a, b in zip(jax.tree.leaves(run_mqd(key, cfg)), jax.tree.leaves(run_mqd(key, cfg, cfg.params())), strict=True):
+        np.testing.assert_array_equal(a, b)

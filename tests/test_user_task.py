@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 
 import envs
-from mqd_jax import Config, Task, run_mqd
+from mqd_jax import Config, Task, model, run_mqd
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Reach(Task):
     """The README's example: a 2-link planar arm."""
+
+    quality_range = (-6.3, 0.0)
 
     def evaluate(self, actions, key):
         a1, a2 = actions[:, 0], actions[:, 0] + actions[:, 1]
@@ -31,3 +33,19 @@ def test_registered_user_task_runs_and_stores_true_behaviors():
     np.testing.assert_allclose(rep.qualities[:n], q, atol=1e-6)
     with pytest.raises(ValueError, match="already registered"):
         envs.register("reach_test", lambda: None)
+
+
+def test_mqd_on_a_user_task_learns_its_quality_range():
+    if "reach_mqd_test" not in envs.registered_tasks():
+        envs.register("reach_mqd_test", lambda: Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0)))
+    task = envs.make("reach_mqd_test")
+    cfg = Config(task="reach_mqd_test", algorithm="mqd", max_generations=12, population_size=32, capacity=512,
+                 warmup_samples=128, learning_rate=1e-2, num_batches=100)
+    state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (256, 2), minval=-3.14, maxval=3.14)
+    _, pred_q = model.predict(state.model, actions, cfg, task)
+    _, q, _ = task.evaluate(actions, None)
+    # tanh outputs map onto quality_range, and the model has learnt where in it qualities lie.
+    assert np.all((np.asarray(pred_q) >= -6.3) & (np.asarray(pred_q) <= 0.0))
+    # Predicting the mean would give an RMS error of 1 std; a wrong quality normalization, far more.
+    assert float(jnp.sqrt(jnp.mean((pred_q - q) ** 2))) < 0.25 * float(jnp.std(q))

@@ -1,0 +1,184 @@
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_run import tiny
+
+import envs
+from envs.obstacle2d import Obstacle2D
+from mqd_jax import Config, Task, model, run_mqd
+from mqd_jax import filter as model_filter
+from mqd_jax.repertoire import Repertoire
+
+POISON = 1e6
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Linear(Task):
+    """Behavior and quality are known affine maps of a 3D action."""
+
+    def evaluate(self, actions, key):
+        b = 0.5 + 0.2 * jnp.stack([actions[:, 0] - actions[:, 1], actions[:, 2] + 0.5 * actions[:, 0]], axis=1)
+        return b, 0.5 + 0.3 * actions[:, 1], jnp.ones(actions.shape[0], bool)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Poisoned(Obstacle2D):
+    """Obstacle2D whose rows outside the evaluation mask come back as an unbeatable skill."""
+
+    def evaluate_masked(self, actions, key, mask):
+        b, q, v = self.evaluate(actions, key)
+        return jnp.where(mask[:, None], b, 0.5), jnp.where(mask, q, POISON), v
+
+
+LINEAR = Linear((-1.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0))
+envs.register("linear_test", lambda: LINEAR)
+envs.register("poisoned_test", lambda: Poisoned(*dataclasses.astuple(envs.make("obstacle2d"))[:4]))
+
+
+def repertoire_of(behaviors, qualities, capacity=8):
+    b = np.asarray(behaviors, np.float32)
+    rep = Repertoire.empty(capacity, 1, b.shape[1], 4)
+    n = len(b)
+    return rep.replace(behaviors=rep.behaviors.at[:n].set(b), qualities=rep.qualities.at[:n].set(qualities),
+                       valid=jnp.arange(capacity) < n, count=jnp.int32(n))
+
+
+def test_filter_scores_and_decision_by_hand():
+    rep = repertoire_of([[0.0, 0.0], [0.3, 0.4], [1.0, 0.0]], [0.5, 0.2, 0.9])
+    pred_b = jnp.array([[0.0, 0.0], [0.6, 0.8]])
+    pred_q = jnp.array([0.6, 0.1])
+    nov, qua = model_filter.predicted_scores(pred_b, pred_q, rep, k=2)
+    # Candidate 0: nearest are slot 0 (d 0) and slot 1 (d 0.5). Candidate 1: slot 1 (d 0.5), slot 2 (d sqrt(0.8)).
+    np.testing.assert_allclose(nov, [0.25, (0.5 + np.sqrt(0.8)) / 2], rtol=1e-6)
+    np.testing.assert_allclose(qua, [((0.6 - 0.5) + (0.6 - 0.2)) / 2, ((0.1 - 0.2) + (0.1 - 0.9)) / 2], rtol=1e-6)
+    np.testing.assert_array_equal(model_filter.passes(nov, qua, 0.3, 0.0), [True, True])  # 0 by quality, 1 by novelty
+    np.testing.assert_array_equal(model_filter.passes(nov, qua, 0.3, 0.3), [False, True])
+    np.testing.assert_array_equal(model_filter.passes(nov, qua, 0.7, 0.3), [False, False])
+    # Fewer than K skills: the mean runs over those there are; none: everything passes.
+    nov1, qua1 = model_filter.predicted_scores(pred_b, pred_q, repertoire_of([[0.3, 0.4]], [0.2]), k=5)
+    np.testing.assert_allclose(nov1, [0.5, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(qua1, [0.4, -0.1], rtol=1e-6)
+    nov0, qua0 = model_filter.predicted_scores(pred_b, pred_q, Repertoire.empty(8, 1, 2, 4), k=5)
+    assert np.all(np.isinf(nov0)) and np.all(model_filter.passes(nov0, qua0, 1e9, 1e9))
+    assert not model_filter.passes(jnp.array([jnp.nan]), jnp.array([jnp.nan]), 0.0, -1.0)[0]
+
+
+def test_budgeted_order_by_hand():
+    nov = jnp.array([0.05, 0.01, 0.09, 0.02, jnp.nan, 0.05, 0.03])
+    qua = jnp.array([0.0, 0.2, -0.1, 0.3, jnp.nan, 0.1, -0.2])
+    # Novel (> 0.04): 2, then 0 and 5 tied on novelty -> higher qua first (5, 0).
+    # The rest by qua: 3 (0.3), 1 (0.2), 6 (-0.2); the NaN prediction (4) last.
+    np.testing.assert_array_equal(model_filter.budgeted_order(nov, qua, 0.04), [2, 5, 0, 3, 1, 6, 4])
+
+
+def test_predict_maps_tanh_outputs_to_real_units():
+    cfg = Config(task="linear_test", algorithm="mqd", warmup_samples=10, hidden_size=4)
+    ms = model.init(jax.random.PRNGKey(0), cfg, LINEAR)
+    want = np.array([-0.5, 0.25, 0.8], np.float32)  # normalized behavior x, y and quality
+    p = ms.params["params"]
+    params = {"params": {"Dense_0": p["Dense_0"], "Dense_1": {"kernel": jnp.zeros_like(p["Dense_1"]["kernel"]),
+                                                              "bias": jnp.arctanh(jnp.asarray(want))}}}
+    b, q = model.predict(ms.replace(params=params), jnp.zeros((3, 3)), cfg, LINEAR)
+    # Behavior box [0, 1]^2 and the default quality range (0, 1): x = (y + 1) / 2.
+    np.testing.assert_allclose(b, np.broadcast_to([0.25, 0.625], (3, 2)), rtol=1e-5)
+    np.testing.assert_allclose(q, [0.9] * 3, rtol=1e-5)
+
+
+def test_model_learns_a_linear_map():
+    cfg = Config(task="linear_test", algorithm="mqd", warmup_samples=10, learning_rate=1e-2, num_batches=300)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (512, 3), minval=-1.0, maxval=1.0)
+    b, q, _ = LINEAR.evaluate(actions, None)
+    rep = Repertoire.empty(512, 3, 2, 4).replace(actions=actions, behaviors=b, qualities=q,
+                                                 valid=jnp.ones(512, bool), count=jnp.int32(512))
+    ms = model.init(jax.random.PRNGKey(0), cfg, LINEAR)
+    test = jax.random.uniform(jax.random.PRNGKey(2), (256, 3), minval=-1.0, maxval=1.0)
+    tb, tq, _ = LINEAR.evaluate(test, None)
+
+    def error(m):
+        pb, pq = model.predict(m, test, cfg, LINEAR)
+        return float(jnp.mean((pb - tb) ** 2)), float(jnp.mean((pq - tq) ** 2))
+
+    before = error(ms)
+    trained, loss = model.train(ms, jax.random.PRNGKey(3), rep, cfg, LINEAR, jnp.float32(cfg.learning_rate))
+    after = error(trained)
+    assert int(trained.steps) == 300
+    assert after[0] < 1e-3 and after[1] < 1e-3, after  # RMS error < 0.03 on a range of ~0.6
+    assert after[0] < before[0] / 10 and after[1] < before[1] / 10
+    assert np.isfinite(float(loss))
+
+
+def run(cfg):
+    return run_mqd(jax.random.PRNGKey(4), cfg)
+
+
+def test_mqd_with_an_always_passing_filter_equals_qd():
+    qd = tiny(task="obstacle2d", algorithm="qd")
+    mqd = dataclasses.replace(qd, algorithm="mqd", t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
+    (s_qd, m_qd), (s_mqd, m_mqd) = run(qd), run(mqd)
+    assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.model.steps) == 20 * 9
+    for field in ("repertoire", "archive", "coverage", "key", "generation", "num_evaluations"):
+        for a, b in zip(jax.tree.leaves(getattr(s_qd, field)), jax.tree.leaves(getattr(s_mqd, field)), strict=True):
+            np.testing.assert_array_equal(a, b)
+    for name in m_qd:
+        if name not in ("model_loss", "prediction_error"):
+            np.testing.assert_array_equal(m_qd[name], m_mqd[name], err_msg=name)
+
+
+def check_masked_rows_left_no_trace(cfg, state, m):
+    pop, pool = cfg.population_size, cfg.population_size * (cfg.pool_factor if cfg.budgeted else 1)
+    evaluations, discarded = np.asarray(m["evaluations"]), np.asarray(m["discarded"])
+    outcomes = m["added"] + m["replaced"] + m["rejected"] + m["dropped_full"] + m["invalid"]
+    np.testing.assert_array_equal(outcomes, evaluations)
+    np.testing.assert_array_equal(np.cumsum(evaluations), m["num_evaluations"])
+    np.testing.assert_array_equal(evaluations + discarded, np.where(discarded > 0, pool, pop))
+    assert float(state.repertoire.qualities.max()) < POISON and float(state.archive.qualities.max()) < POISON
+    assert int(state.archive.total) == int(evaluations.sum() - m["added"].sum())
+    return evaluations, discarded
+
+
+def test_discarded_candidates_are_never_evaluated_counted_or_inserted():
+    cfg = tiny(task="poisoned_test", algorithm="mqd", warmup_samples=64, num_batches=50, t_nov=0.05, t_qua=0.05)
+    state, m = run(cfg)
+    evaluations, discarded = check_masked_rows_left_no_trace(cfg, state, m)
+    assert discarded.sum() > 0 and evaluations[4:].min() < cfg.population_size
+
+
+def test_budgeted_mode_evaluates_exactly_the_population():
+    cfg = tiny(task="poisoned_test", algorithm="mqd", warmup_samples=64, num_batches=50, budgeted=True,
+               pool_factor=3)
+    state, m = run(cfg)
+    evaluations, discarded = check_masked_rows_left_no_trace(cfg, state, m)
+    np.testing.assert_array_equal(evaluations, cfg.population_size)
+    np.testing.assert_array_equal(discarded, [0] * 4 + [2 * cfg.population_size] * (cfg.max_generations - 4))
+
+
+def test_warm_up_runs_as_qd_and_does_not_train():
+    # A filter that turns down everything once the model is in use.
+    cfg = tiny(task="obstacle2d", algorithm="mqd", warmup_samples=70, num_batches=10, t_nov=1e3, t_qua=1e3)
+    state, m = run(cfg)
+    before = np.concatenate([[0], np.asarray(m["num_evaluations"])[:-1]])
+    warm = before < cfg.warmup_samples
+    assert warm.sum() == 5  # 5 x 16 = 80 >= 70 evaluations
+    np.testing.assert_array_equal(np.asarray(m["discarded"])[warm], 0)
+    np.testing.assert_array_equal(np.asarray(m["evaluations"])[warm], cfg.population_size)
+    np.testing.assert_array_equal(np.asarray(m["discarded"])[~warm], cfg.population_size)
+    # Training starts at the end of the generation that completes warm-up, and then every generation.
+    trained = np.isfinite(np.asarray(m["model_loss"]))
+    np.testing.assert_array_equal(trained, np.asarray(m["num_evaluations"]) >= cfg.warmup_samples)
+    assert int(state.model.steps) == cfg.num_batches * trained.sum()
+    assert np.all(np.isfinite(np.asarray(m["prediction_error"])[warm]))
+    assert np.all(np.isnan(np.asarray(m["prediction_error"])[~warm]))  # nothing evaluated
+
+
+@pytest.mark.parametrize("kw, field", [
+    (dict(algorithm="qd", budgeted=True), "budgeted"),
+    (dict(algorithm="mqd", budgeted=1), "budgeted"),
+    (dict(algorithm="mqd", warmup_samples=1200, max_generations=12, population_size=100), "warmup_samples"),
+    (dict(pool_factor=0), "pool_factor"),
+])
+def test_model_config_is_validated(kw, field):
+    with pytest.raises(ValueError, match=f"Config.{field}="):
+        Config(**kw)
