@@ -1,23 +1,28 @@
-"""Side-by-side speed of mqd-jax QD and pyribs on 2D Obstacle, in one process.
+"""Side-by-side speed of mqd-jax (QD, M-QD), pyribs and QDax on 2D Obstacle, in one process.
 
-    python experiments/bench_qd.py [--generations 250] [--out results/bench_qd.md]
+    python experiments/bench_qd.py [--generations 250] [--qdax-generations 10] [--out results/bench_qd.md]
 
-Both run the paper's 2D settings (population 100, K 5, t_dist 0.02) on the same
-task: mqd-jax through its jitted `run_mqd`, pyribs (`pip install -e .[bench]`)
+All run the paper's 2D settings (population 100, K 5, t_dist 0.02) on the same
+task: mqd-jax through its jitted `run_mqd`; pyribs (`pip install -e .[bench]`)
 through a `ProximityArchive` with local competition and an iso+line emitter,
-evaluating with the numpy path of the very same dynamics. Also sweeps our
-repertoire capacity. Writes a markdown table (ratios are against pyribs,
-measured in this run).
+evaluating with the numpy path of the very same dynamics; QDax 0.5 through an
+`UnstructuredRepertoire` (l_value t_dist, capacity as ours) with its
+`isoline_variation` and uniform parent selection, evaluating with the JAX path
+in one jitted `lax.scan`. QDax runs fewer generations (it is slow), reported
+per generation. Also sweeps our repertoire capacity. Writes a markdown table
+(ratios are against pyribs, measured in this run).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import envs
@@ -70,9 +75,46 @@ def bench_pyribs(cfg: Config, seed: int = 0) -> dict:
                 coverage=float("nan"), dropped=0)
 
 
+def bench_qdax(cfg: Config, generations: int, seed: int = 0) -> dict:
+    from qdax.core.containers.unstructured_repertoire import UnstructuredRepertoire
+    from qdax.core.emitters.mutation_operators import isoline_variation
+
+    task = envs.make(TASK)
+    low, high = jnp.asarray(task.action_low), jnp.asarray(task.action_high)
+    pop = cfg.population_size
+
+    def run(key: jax.Array) -> tuple[UnstructuredRepertoire, jax.Array]:
+        key, k0 = jax.random.split(key)
+        x0 = jax.random.uniform(k0, (pop, task.action_dim), minval=low, maxval=high)
+        b0, q0, _ = task.evaluate(x0, None)
+        rep = UnstructuredRepertoire.init(x0, q0, b0, jnp.float32(cfg.t_dist), cfg.capacity)
+
+        def generation(carry: tuple, _: None) -> tuple:
+            rep, key = carry
+            key, k1, k2, k3 = jax.random.split(key, 4)
+            x1, x2 = rep.select(k1, pop).genotypes, rep.select(k2, pop).genotypes
+            x = isoline_variation(x1, x2, k3, cfg.iso_sigma * (high - low), cfg.line_sigma, low, high)
+            b, q, _ = task.evaluate(x, None)
+            return (rep.add(x, b, q), key), None
+
+        (rep, _), _ = jax.lax.scan(generation, (rep, key), None, length=generations - 1)
+        return rep, rep.get_number_genotypes()
+
+    key = jax.random.PRNGKey(seed)
+    start = time.perf_counter()
+    compiled = jax.jit(run).lower(key).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    _, size = jax.block_until_ready(compiled(key))
+    run_s = time.perf_counter() - start
+    return dict(compile_s=compile_s, ms_per_gen=run_s / generations * 1e3, evals_per_s=generations * pop / run_s,
+                size=int(size), coverage=float("nan"), dropped=0)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--generations", type=int, default=250)
+    parser.add_argument("--qdax-generations", type=int, default=10, help="0 leaves QDax out")
     parser.add_argument("--capacities", type=int, nargs="*", default=[1024, 4096, 16384])
     parser.add_argument("--out", default="results/bench_qd.md")
     args = parser.parse_args()
@@ -80,6 +122,11 @@ def main() -> None:
 
     rows = [("pyribs ProximityArchive + iso-line", bench_pyribs(cfg))]
     rows.append((f"mqd-jax QD (capacity {cfg.capacity})", bench_ours(cfg)))
+    mqd = bench_ours(dataclasses.replace(cfg, algorithm="mqd"))
+    rows.append((f"mqd-jax M-QD ({mqd['ms_per_gen'] / rows[1][1]['ms_per_gen']:.2f}x our QD)", mqd))
+    if args.qdax_generations:
+        rows.append((f"QDax UnstructuredRepertoire + iso-line ({args.qdax_generations} generations)",
+                     bench_qdax(cfg, args.qdax_generations)))
     for cap in args.capacities:
         rows.append((f"mqd-jax QD, capacity {cap}", bench_ours(Config.paper_2d(
             task=TASK, max_generations=args.generations, capacity=cap, archive_capacity=cap))))

@@ -1,0 +1,74 @@
+"""Where a generation's time goes: each stage of `run.generation`, jitted alone, on a grown repertoire.
+
+    python experiments/profile_generation.py [--task obstacle2d] [--algorithm mqd] [--grow 250]
+
+Runs `--grow` generations first (paper 2D settings), then times, from that
+state, the whole generation and its stages as separately jitted functions
+(median of `--repeats` calls): proposal (variation and, for M-QD, the model's
+filter), rollouts, insertion (distance matrix, nearest-skill search,
+sequential rule, neighbour lists, novelty), coverage stamp and model training.
+Stages timed alone do not add up exactly to the fused generation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from mqd_jax import Config, coverage, init, model, repertoire, run
+from mqd_jax.run import generation, get_task, run_generations
+
+
+def _median_ms(fn: Callable[[], object], repeats: int) -> float:
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="obstacle2d")
+    parser.add_argument("--algorithm", default="qd", choices=["qd", "mqd", "random"])
+    parser.add_argument("--grow", type=int, default=250)
+    parser.add_argument("--repeats", type=int, default=200)
+    args = parser.parse_args()
+    cfg = Config.paper_2d(task=args.task, algorithm=args.algorithm)
+    params, task = cfg.params(), get_task(cfg)
+    grow = jax.jit(run_generations, static_argnums=(1, 3))
+    state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
+    key = jax.random.PRNGKey(1)
+    proposal = jax.jit(lambda s: run._propose(key, s, cfg, params, task))(state)
+    b, q, ok = task.evaluate(proposal.actions, key)
+    ok = ok & proposal.evaluate
+    stages = {
+        "whole generation": jax.jit(lambda s: generation(s, cfg, params)),
+        "proposal (variation, filter)": jax.jit(lambda s: run._propose(key, s, cfg, params, task)),
+        "rollouts": jax.jit(lambda s: task.evaluate(proposal.actions, key)),
+        "insertion (incl. neighbours, novelty)": jax.jit(lambda s: repertoire.insert(
+            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, run._NUM_NEAR, chunk=32)),
+        "coverage stamp": jax.jit(lambda s: coverage.stamp(s.coverage, b, ok.astype(jnp.int32), params.t_dist)),
+    }
+    if cfg.algorithm == "mqd":
+        stages["model training (500 Adam steps)"] = jax.jit(
+            lambda s: model.train(s.model, key, s.repertoire, cfg, task, params.learning_rate))
+    print(f"{args.task}, {args.algorithm}, repertoire of {int(state.repertoire.count)} skills after {args.grow} "
+          f"generations (capacity {cfg.capacity}); {platform.machine()}, {os.cpu_count()} CPU cores, "
+          f"jax {jax.__version__} on {jax.default_backend()}; median of {args.repeats} calls.\n")
+    print("| stage | ms |\n|---|---|")
+    for name, fn in stages.items():
+        print(f"| {name} | {_median_ms(lambda f=fn: f(state), args.repeats):.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
