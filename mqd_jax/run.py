@@ -14,7 +14,7 @@ from mqd_jax import archive as archive_lib
 from mqd_jax import coverage, model, repertoire, selection, variation
 from mqd_jax import filter as model_filter
 from mqd_jax.config import Config, Params
-from mqd_jax.task import Task
+from mqd_jax.task import Task, check_outputs
 
 # Nearest pre-generation skills precomputed per candidate (see repertoire.py).
 _NUM_NEAR = 4
@@ -60,8 +60,12 @@ def _reachable(cfg: Config) -> np.ndarray:
 
 
 def init(key: jax.Array, cfg: Config) -> State:
-    """The state before the first generation: empty repertoire and archive, random model."""
+    """The state before the first generation: empty repertoire and archive, random model.
+
+    Raises ValueError if the task's `evaluate` breaks the task protocol's shapes.
+    """
     task = get_task(cfg)
+    check_outputs(task, cfg.task, cfg.population_size)
     n, d = task.action_dim, task.behavior_dim
     key, k_model = jax.random.split(key)
     return State(

@@ -19,6 +19,7 @@ import dataclasses
 from typing import ClassVar
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -69,3 +70,23 @@ class Task:
         The default: the whole box.
         """
         return np.ones(points.shape[:-1], bool)
+
+
+def check_outputs(task: Task, name: str, batch: int) -> None:
+    """Raises ValueError unless `task.evaluate` has the protocol's output shapes and dtypes.
+
+    Checked abstractly (`jax.eval_shape`: nothing runs) on actions[batch, n].
+    """
+    n, d = task.action_dim, task.behavior_dim
+    want = f"(behaviors [{batch}, {d}] float, qualities [{batch}] float, valid [{batch}] bool)"
+    actions = jax.ShapeDtypeStruct((batch, n), jnp.float32)
+    try:
+        out = jax.eval_shape(lambda a: task.evaluate(a, jax.random.PRNGKey(0)), actions)
+    except Exception as e:  # any failure of user code is reported the same way
+        raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) failed: {e}") from e
+    shapes = [(batch, d), (batch,), (batch,)]
+    kinds = [jnp.floating, jnp.floating, jnp.bool_]
+    if not (isinstance(out, tuple) and len(out) == 3 and all(
+            o.shape == s and jnp.issubdtype(o.dtype, k) for o, s, k in zip(out, shapes, kinds, strict=True))):
+        got = jax.tree.map(lambda o: f"{o.dtype}{list(o.shape)}", out)
+        raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) must return {want}; got {got}")
