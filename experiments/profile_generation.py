@@ -4,7 +4,7 @@
 
 Runs `--grow` generations first (paper 2D settings), then times, from that
 state, the whole generation and its stages as separately jitted functions
-(median of `--repeats` calls): proposal (variation and, for M-QD, the model's
+(median of `--repeats` calls): ask (variation and, for M-QD, the model's
 filter), rollouts, insertion (distance matrix, nearest-skill search,
 sequential rule, neighbour lists, novelty), coverage stamp and model training.
 Stages timed alone do not add up exactly to the fused generation.
@@ -22,8 +22,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from mqd_jax import Config, coverage, init, model, repertoire, run
-from mqd_jax.run import generation, get_task, run_generations
+from mqd_jax import Config, coverage, init, model, repertoire
+from mqd_jax.run import _NUM_NEAR, ask, generation, get_task, run_generations
 
 
 def _median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -48,15 +48,15 @@ def main() -> None:
     grow = jax.jit(run_generations, static_argnums=(1, 3))
     state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
     key = jax.random.PRNGKey(1)
-    proposal = jax.jit(lambda s: run._propose(key, s, cfg, params, task))(state)
+    proposal = ask(state, cfg, params)
     b, q, ok = task.evaluate(proposal.actions, key)
     ok = ok & proposal.evaluate
     stages = {
         "whole generation": jax.jit(lambda s: generation(s, cfg, params)),
-        "proposal (variation, filter)": jax.jit(lambda s: run._propose(key, s, cfg, params, task)),
+        "ask (variation, filter)": jax.jit(lambda s: ask(s, cfg, params)),
         "rollouts": jax.jit(lambda s: task.evaluate(proposal.actions, key)),
         "insertion (incl. neighbours, novelty)": jax.jit(lambda s: repertoire.insert(
-            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, run._NUM_NEAR, chunk=32)),
+            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, _NUM_NEAR, chunk=32)),
         "coverage stamp": jax.jit(lambda s: coverage.stamp(s.coverage, b, ok.astype(jnp.int32), params.t_dist)),
     }
     if cfg.algorithm == "mqd":

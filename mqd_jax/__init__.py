@@ -2,7 +2,8 @@
 
 from mqd_jax.adaptation import Adapted, adapt
 from mqd_jax.config import Config, Params
-from mqd_jax.run import State, generation, init, run_generations, run_mqd
+from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
 from mqd_jax.task import Task
 
-__all__ = ["Adapted", "Config", "Params", "State", "Task", "adapt", "generation", "init", "run_generations", "run_mqd"]
+__all__ = ["Adapted", "Candidates", "Config", "Params", "State", "Task", "adapt", "ask", "generation", "init",
+           "run_generations", "run_mqd", "tell"]

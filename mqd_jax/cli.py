@@ -12,8 +12,9 @@ import warnings
 import jax
 import numpy as np
 
+from mqd_jax import checkpoint
 from mqd_jax.config import Config
-from mqd_jax.run import init, run_generations
+from mqd_jax.run import State
 
 PRESETS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
 # Short flags kept from the first versions of the CLI.
@@ -40,29 +41,29 @@ def _config(args: argparse.Namespace) -> Config:
 
 def _run(args: argparse.Namespace) -> None:
     cfg = _config(args)
-    chunk = max(1, min(args.chunk, cfg.max_generations))
-    step = jax.jit(run_generations, static_argnums=(1, 3))
-    state, params = init(jax.random.PRNGKey(args.seed), cfg), cfg.params()
-    history: list[dict[str, np.ndarray]] = []
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "checkpoint.msgpack")
+    if os.path.exists(path) and not args.resume:
+        print(f"starting afresh; pass --resume to continue the checkpoint in {path}")
     start = time.perf_counter()
-    done = 0
-    while done < cfg.max_generations:
-        n = min(chunk, cfg.max_generations - done)
-        state, m = step(state, cfg, params, n)
-        history.append(jax.tree.map(np.asarray, m))
-        done += n
-        discarded = sum(int(h["discarded"].sum()) for h in history)
-        print(f"generation {done:4d}  coverage {m['coverage'][-1]:.3f}  size {int(m['repertoire_size'][-1]):5d}  "
-              f"evaluations {int(m['num_evaluations'][-1]):7d}  discarded {discarded:6d}  "
-              f"{done / (time.perf_counter() - start):.1f} gen/s", flush=True)
-    metrics = {k: np.concatenate([h[k] for h in history]) for k in history[0]}
+    totals = {"discarded": 0, "generations": 0}  # over the chunks this process ran
+
+    def progress(state: State, m: dict[str, np.ndarray]) -> None:
+        totals["discarded"] += int(m["discarded"].sum())
+        totals["generations"] += len(m["coverage"])
+        print(f"generation {int(state.generation):4d}  coverage {m['coverage'][-1]:.3f}  "
+              f"size {int(m['repertoire_size'][-1]):5d}  evaluations {int(m['num_evaluations'][-1]):7d}  "
+              f"discarded {totals['discarded']:6d}  {totals['generations'] / (time.perf_counter() - start):.1f} gen/s",
+              flush=True)
+
+    state, metrics = checkpoint.run_with_checkpoints(
+        jax.random.PRNGKey(args.seed), cfg, path, every=max(1, args.chunk), resume=args.resume, on_chunk=progress)
     dropped = int(metrics["dropped_full"].sum())
     if dropped:
         warnings.warn(f"{dropped} new niches did not fit: raise --capacity above {cfg.capacity}", stacklevel=1)
     print(f"done: coverage {metrics['coverage'][-1]:.3f}, mean quality {metrics['mean_quality'][-1]:.3f}, "
           f"{int(state.repertoire.count)} skills, {int(metrics['num_evaluations'][-1])} evaluations, "
           f"{time.perf_counter() - start:.1f} s (compilation included)")
-    os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "metrics.json"), "w") as f:
         # NaN (a metric that does not apply) becomes null: strict JSON.
         json.dump({k: [None if x != x else x for x in v.tolist()] for k, v in metrics.items()}, f)
@@ -97,7 +98,9 @@ def main(argv: list[str] | None = None) -> None:
     run = sub.add_parser("run", help="run one search and write metrics, repertoire and a plot")
     _add_config_flags(run)
     run.add_argument("--seed", type=int, default=0)
-    run.add_argument("--chunk", type=int, default=25, help="generations per compiled chunk (one progress line)")
+    run.add_argument("--chunk", type=int, default=25,
+                     help="generations per compiled chunk: one progress line and one checkpoint each")
+    run.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
     run.add_argument("--out", default="results/run")
     args = parser.parse_args(argv)
     try:

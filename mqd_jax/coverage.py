@@ -75,5 +75,9 @@ def stamp(grid: CoverageGrid, centres: jax.Array, weights: jax.Array, radius: ja
 
 def fraction(grid: CoverageGrid) -> jax.Array:
     """Covered fraction of the reachable cells."""
-    covered = (grid.counts > 0) & grid.reachable
-    return covered.sum() / jnp.maximum(grid.reachable.sum(), 1)
+    covered = ((grid.counts > 0) & grid.reachable).sum()
+    # A constant denominator may be turned into a multiplication by its
+    # reciprocal in one program and not another; the barrier keeps the result
+    # the same in every compiled program (e.g. chunked vs whole runs).
+    total = jax.lax.optimization_barrier(jnp.maximum(grid.reachable.sum(), 1))
+    return covered / total

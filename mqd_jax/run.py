@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -94,30 +93,55 @@ def _candidates(key: jax.Array, state: State, cfg: Config, params: Params, task:
     return jnp.where(rep.count > 0, children, fresh)
 
 
-class _Proposal(NamedTuple):
-    actions: jax.Array  # [P, n] the generation's candidates
-    evaluate: jax.Array  # [P] bool, those to roll out
-    pred_behaviors: jax.Array  # [P, d] the model's predictions (M-QD), else NaN
-    discarded: jax.Array  # int32, candidates the model turned down
+@struct.dataclass
+class Candidates:
+    """A generation's candidates, as `ask` hands them to an evaluator (P = population size).
+
+    Attributes:
+      actions: [P, n] actions.
+      evaluate: [P] bool, the candidates to roll out (M-QD's filter; all for QD
+        and RANDOM). The others' results are ignored.
+      key: PRNG key for the rollouts (for stochastic tasks).
+      pred_behaviors: [P, d] the model's predicted behaviors (M-QD), else NaN.
+      discarded: int32, candidates the model turned down this generation.
+    """
+
+    actions: jax.Array
+    evaluate: jax.Array
+    key: jax.Array
+    pred_behaviors: jax.Array
+    discarded: jax.Array
 
 
-def _propose(key: jax.Array, state: State, cfg: Config, params: Params, task: Task) -> _Proposal:
-    """Variation and, for M-QD after warm-up, the model's filter (Algorithm 1)."""
-    pop = cfg.population_size
+def _params(cfg: Config, params: Params | None) -> Params:
+    # The barrier keeps XLA from folding the config's constants into the
+    # arithmetic, which would round differently from passing the same values.
+    return jax.lax.optimization_barrier(cfg.params()) if params is None else params
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def ask(state: State, cfg: Config, params: Params | None = None) -> Candidates:
+    """Variation and, for M-QD after warm-up, the model's filter (Algorithm 1).
+
+    Uses `state.key` and does not advance it: `tell` does. Pure and jitted.
+    """
+    params, task, pop = _params(cfg, params), get_task(cfg), cfg.population_size
+    _, k_cand, k_eval, _ = jax.random.split(state.key, 4)
     if cfg.algorithm != "mqd":
-        actions = _candidates(key, state, cfg, params, task, pop)
-        return _Proposal(actions, jnp.ones(pop, bool), jnp.full((pop, task.behavior_dim), jnp.nan), jnp.int32(0))
+        actions = _candidates(k_cand, state, cfg, params, task, pop)
+        return Candidates(actions, jnp.ones(pop, bool), k_eval, jnp.full((pop, task.behavior_dim), jnp.nan),
+                          jnp.int32(0))
     warm_up = state.num_evaluations < cfg.warmup_samples
-    pool = _candidates(key, state, cfg, params, task, pop * cfg.pool_factor if cfg.budgeted else pop)
+    pool = _candidates(k_cand, state, cfg, params, task, pop * cfg.pool_factor if cfg.budgeted else pop)
     pred_b, pred_q = model.predict(state.model, pool, cfg, task)
     novelty, improvement = model_filter.predicted_scores(pred_b, pred_q, state.repertoire, cfg.k)
     if cfg.budgeted:
         # During warm-up the pool's first P candidates stand in for QD's.
         top = jnp.where(warm_up, jnp.arange(pop), model_filter.budgeted_order(novelty, improvement, params.t_nov)[:pop])
         discarded = jnp.where(warm_up, 0, pool.shape[0] - pop).astype(jnp.int32)
-        return _Proposal(pool[top], jnp.ones(pop, bool), pred_b[top], discarded)
+        return Candidates(pool[top], jnp.ones(pop, bool), k_eval, pred_b[top], discarded)
     evaluate = warm_up | model_filter.passes(novelty, improvement, params.t_nov, params.t_qua)
-    return _Proposal(pool, evaluate, pred_b, pop - evaluate.sum(dtype=jnp.int32))
+    return Candidates(pool, evaluate, k_eval, pred_b, pop - evaluate.sum(dtype=jnp.int32))
 
 
 def _train(state: State, rep: repertoire.Repertoire, key: jax.Array, cfg: Config, params: Params,
@@ -130,16 +154,37 @@ def _train(state: State, rep: repertoire.Repertoire, key: jax.Array, cfg: Config
                         lambda: (state.model, jnp.float32(jnp.nan)))
 
 
-def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
-    """One generation: variation, model filter, rollouts, sequential insertion, novelty, training, metrics."""
-    task = get_task(cfg)
-    key, k_cand, k_eval, k_train = jax.random.split(state.key, 4)
-    proposal = _propose(k_cand, state, cfg, params, task)
-    actions = proposal.actions
-    behaviors, qualities, valid = task.evaluate_masked(actions, k_eval, proposal.evaluate)
-    ok = proposal.evaluate & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
-    behaviors = jnp.where(ok[:, None], behaviors, 0.0)
-    qualities = jnp.where(ok, qualities, 0.0)
+def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array, pop: int, d: int) -> None:
+    shapes = {"behaviors": (behaviors.shape, (pop, d)), "qualities": (qualities.shape, (pop,)),
+              "valid": (valid.shape, (pop,))}
+    for name, (got, want) in shapes.items():
+        if tuple(got) != want:
+            raise ValueError(f"tell: {name} has shape {tuple(got)}; expected {want} (one row per candidate)")
+    if not jnp.issubdtype(valid.dtype, jnp.bool_):
+        raise ValueError(f"tell: valid has dtype {valid.dtype}; expected bool")
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
+         cfg: Config, params: Params | None = None) -> tuple[State, dict[str, jax.Array]]:
+    """Insertion, archive, coverage, novelty and model training for evaluated candidates.
+
+    Args:
+      state: the state `ask` was called with.
+      candidates: what `ask` returned.
+      behaviors: [P, d], qualities: [P], valid: [P] bool: the rollouts' results;
+        rows that `candidates.evaluate` leaves out are ignored (any value).
+
+    Returns:
+      The next state (key advanced) and the generation's metrics (see `run_mqd`).
+    """
+    params, task, pop = _params(cfg, params), get_task(cfg), cfg.population_size
+    _check_results(behaviors, qualities, valid, pop, task.behavior_dim)
+    key, _, _, k_train = jax.random.split(state.key, 4)
+    actions = candidates.actions
+    ok = candidates.evaluate & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
+    behaviors = jnp.where(ok[:, None], behaviors, 0.0).astype(jnp.float32)
+    qualities = jnp.where(ok, qualities, 0.0).astype(jnp.float32)
 
     before = state.repertoire
     rep, ins = repertoire.insert(before, actions, behaviors, qualities, ok, params.t_dist, cfg.k, _NUM_NEAR,
@@ -148,7 +193,7 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
     # Archive: the candidate itself, or the skill it replaced.
     from_old = ins.victim_slot >= 0
     from_cand = ins.victim_candidate >= 0
-    src = jnp.where(from_cand, ins.victim_candidate, jnp.arange(cfg.population_size))
+    src = jnp.where(from_cand, ins.victim_candidate, jnp.arange(pop))
     slot_old = jnp.maximum(ins.victim_slot, 0)
     pick = lambda old, cand: jnp.where(  # noqa: E731
         from_old.reshape((-1,) + (1,) * (cand.ndim - 1)), old[slot_old], cand[src])
@@ -160,10 +205,10 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
         state.coverage, jnp.concatenate([before.behaviors[slot_old], behaviors]),
         jnp.concatenate([-from_old.astype(jnp.int32), ins.alive.astype(jnp.int32)]), params.t_dist)
 
-    evaluations = proposal.evaluate.sum(dtype=jnp.int32)
+    evaluations = candidates.evaluate.sum(dtype=jnp.int32)
     state = state.replace(num_evaluations=state.num_evaluations + evaluations)
     # Prediction error on this generation's rollouts, before they train the model.
-    sq_err = jnp.where(ok[:, None], (proposal.pred_behaviors - behaviors) ** 2, 0.0).sum()
+    sq_err = jnp.where(ok[:, None], (candidates.pred_behaviors - behaviors) ** 2, 0.0).sum()
     prediction_error = jnp.where(ok.any(), sq_err / (ok.sum() * task.behavior_dim), jnp.nan)
     trained, loss = _train(state, rep, k_train, cfg, params, task)
     state = State(repertoire=rep, archive=arch, coverage=grid, model=trained, key=key,
@@ -179,12 +224,20 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
         "replaced": count(repertoire.REPLACED),
         "rejected": count(repertoire.REJECTED),
         "dropped_full": count(repertoire.DROPPED_FULL),
-        "invalid": (proposal.evaluate & ~ok).sum(dtype=jnp.int32),
-        "discarded": proposal.discarded,
+        "invalid": (candidates.evaluate & ~ok).sum(dtype=jnp.int32),
+        "discarded": candidates.discarded,
         "model_loss": loss,
         "prediction_error": prediction_error,
     }
     return state, metrics
+
+
+def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
+    """One generation: exactly `ask`, the task's rollouts, `tell`."""
+    candidates = ask(state, cfg, params)
+    behaviors, qualities, valid = get_task(cfg).evaluate_masked(candidates.actions, candidates.key,
+                                                                candidates.evaluate)
+    return tell(state, candidates, behaviors, qualities, valid, cfg, params)
 
 
 def run_generations(state: State, cfg: Config, params: Params, num: int) -> tuple[State, dict[str, jax.Array]]:
@@ -214,7 +267,4 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
       last two are NaN where they do not apply (QD, RANDOM, no training or no
       valid rollout).
     """
-    # The barrier keeps XLA from folding the config's constants into the
-    # arithmetic, which would round differently from passing the same values.
-    params = jax.lax.optimization_barrier(cfg.params()) if params is None else params
-    return run_generations(init(key, cfg), cfg, params, cfg.max_generations)
+    return run_generations(init(key, cfg), cfg, _params(cfg, params), cfg.max_generations)

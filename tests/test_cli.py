@@ -17,7 +17,7 @@ def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     _, want = run_mqd(jax.random.PRNGKey(0), Config(max_generations=6, population_size=8, capacity=64))
     np.testing.assert_array_equal(metrics["repertoire_size"], want["repertoire_size"])
-    np.testing.assert_allclose(metrics["coverage"], want["coverage"], rtol=1e-6)
+    np.testing.assert_array_equal(metrics["coverage"], want["coverage"])
     rep = np.load(tmp_path / "repertoire.npz")
     assert len(rep["behaviors"]) == metrics["repertoire_size"][-1]
 
@@ -32,6 +32,20 @@ def test_mqd_run_mqd_writes_strict_json_with_null_for_untrained_generations(tmp_
     assert metrics["model_loss"][:3] == [None] * 3 and metrics["model_loss"][3] > 0
     assert all(x is not None for x in metrics["prediction_error"])
     assert "discarded      0" in capsys.readouterr().out
+
+
+def test_mqd_run_resumes_its_checkpoint_and_refuses_another_config(tmp_path, capsys):
+    argv = ["run", "--generations", "6", "--population", "8", "--capacity", "64", "--chunk", "3",
+            "--out", str(tmp_path)]
+    cli.main(argv)
+    first = json.loads((tmp_path / "metrics.json").read_text())
+    capsys.readouterr()
+    cli.main([*argv, "--resume"])  # already complete: nothing to run, same results
+    out = capsys.readouterr().out
+    assert "generation " not in out and json.loads((tmp_path / "metrics.json").read_text()) == first
+    with pytest.raises(SystemExit):
+        cli.main([*argv[:-2], "--t-nov", "0.1", "--out", str(tmp_path), "--resume"])
+    assert "another config (t_nov: saved 0.04, now 0.1)" in capsys.readouterr().err
 
 
 def test_mqd_run_warns_when_niches_are_dropped(tmp_path):

@@ -94,3 +94,28 @@ def test_k_smallest_matches_sort(seed, n, k, ties):
         np.testing.assert_array_equal(np.asarray(vals[r]), want)
         want_idx = [j if np.isfinite(v[r, j]) else -1 for j in order] + [-1] * (k - len(order))
         np.testing.assert_array_equal(np.asarray(idx[r]), want_idx)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), capacity=st.sampled_from([6, 40]), spread=st.sampled_from([0.05, 0.2]))
+def test_insertion_invariants(seed, capacity, spread):
+    """Per candidate, against the repertoire as the previous candidates left it (replayed from the statuses)."""
+    pop, t_dist = 12, 0.1
+    rep = Repertoire.empty(capacity, 1, 2, K + 2)
+    for b, q, ok in _batches(seed, 4, pop, spread):
+        before_b, before_q = np.asarray(rep.behaviors).copy(), np.asarray(rep.qualities).copy()
+        rep, ins = _insert(rep, jnp.zeros((pop, 1)), b, q, ok, t_dist)
+        status, slot = np.asarray(ins.status), np.asarray(ins.slot)
+        for i in range(pop):
+            if status[i] == REPLACED:
+                # Only a candidate within t_dist of the skill it replaces, and only with a higher quality:
+                # the quality of a niche never decreases.
+                assert np.linalg.norm(before_b[slot[i]] - b[i]) <= t_dist + 1e-6
+                assert q[i] > before_q[slot[i]]
+            if status[i] in (ADDED, REPLACED):
+                before_b[slot[i]], before_q[slot[i]] = b[i], q[i]
+        np.testing.assert_array_equal(before_b, rep.behaviors)  # the replay is the repertoire
+        assert int(rep.count) == int(np.asarray(rep.valid).sum())
+        assert np.all(status[~ok] == SKIPPED)
+        # The archive receives every evaluated candidate that was not added, or the skill it replaced.
+        assert int(np.asarray(ins.archived).sum()) == ok.sum() - (status == ADDED).sum()

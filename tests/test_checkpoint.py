@@ -1,0 +1,100 @@
+import dataclasses
+import os
+
+import jax
+import numpy as np
+import pytest
+from test_run import tiny
+
+from mqd_jax import checkpoint, run_mqd
+
+CFG = tiny(task="obstacle2d", algorithm="mqd", warmup_samples=64, num_batches=20)
+KEY = jax.random.PRNGKey(3)
+
+
+class Crash(Exception):
+    pass
+
+
+def assert_trees_equal(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted():
+    return run_mqd(KEY, CFG)
+
+
+def crash_after(chunks):
+    seen = []
+
+    def on_chunk(state, metrics):
+        seen.append(int(state.generation))
+        if len(seen) == chunks:
+            raise Crash
+
+    return on_chunk
+
+
+def test_a_resumed_run_equals_the_uninterrupted_one(tmp_path, uninterrupted):
+    path = str(tmp_path / "run.ckpt")
+    with pytest.raises(Crash):
+        checkpoint.run_with_checkpoints(KEY, CFG, path, every=5, on_chunk=crash_after(1))
+    state, metrics = checkpoint.load(path, CFG, KEY)
+    assert int(state.generation) == 5 and len(metrics["coverage"]) == 5
+    state, metrics = checkpoint.run_with_checkpoints(KEY, CFG, path, every=5)
+    want_state, want_metrics = uninterrupted
+    assert_trees_equal(state, want_state)  # repertoire, archive, coverage, model, Adam state, key, counts
+    assert metrics.keys() == want_metrics.keys()
+    for k in metrics:
+        np.testing.assert_array_equal(metrics[k], want_metrics[k], err_msg=k)
+    assert os.listdir(tmp_path) == ["run.ckpt"]  # no temporary file left behind
+
+
+def test_mismatched_checkpoints_are_refused(tmp_path, uninterrupted):
+    path = str(tmp_path / "run.ckpt")
+    state, metrics = uninterrupted
+    checkpoint.save(path, state, metrics, CFG, KEY)
+    with pytest.raises(ValueError, match=r"another config \(t_nov: saved 0.04, now 0.05\)"):
+        checkpoint.load(path, dataclasses.replace(CFG, t_nov=0.05), KEY)
+    with pytest.raises(ValueError, match=r"another config \(task: saved 'obstacle2d', now 'object2d'\)"):
+        checkpoint.load(path, dataclasses.replace(CFG, task="object2d"), KEY)
+    with pytest.raises(ValueError, match="started from another key"):
+        checkpoint.load(path, CFG, jax.random.PRNGKey(4))
+    with pytest.raises(ValueError, match="another config"):
+        checkpoint.run_with_checkpoints(KEY, dataclasses.replace(CFG, capacity=512), path, every=5)
+
+
+def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
+    path = tmp_path / "run.ckpt"
+    checkpoint.save(str(path), *uninterrupted, CFG, KEY)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        checkpoint.load(str(path), CFG, KEY)
+    path.write_bytes(b"\x93\x01\x02\x03")  # valid msgpack, not a checkpoint
+    with pytest.raises(ValueError, match="not an mqd-jax checkpoint"):
+        checkpoint.load(str(path), CFG, KEY)
+
+
+def test_a_crash_while_saving_keeps_the_previous_checkpoint(tmp_path, uninterrupted, monkeypatch):
+    path = tmp_path / "run.ckpt"
+    state, metrics = uninterrupted
+    checkpoint.save(str(path), state, metrics, CFG, KEY)
+    before = path.read_bytes()
+
+    def fail(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(checkpoint.os, "replace", fail)
+    with pytest.raises(OSError, match="disk full"):
+        checkpoint.save(str(path), state.replace(generation=state.generation + 1), metrics, CFG, KEY)
+    assert path.read_bytes() == before
+    loaded, _ = checkpoint.load(str(path), CFG, KEY)
+    assert_trees_equal(loaded, state)
+
+
+def test_every_must_be_a_positive_int(tmp_path):
+    with pytest.raises(ValueError, match="every=0 is invalid"):
+        checkpoint.run_with_checkpoints(KEY, CFG, str(tmp_path / "x"), every=0)
