@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 from mqd_jax.task import Task
 
-_FACTORIES: dict[str, Callable[[], Task]] = {}
+_FACTORIES: dict[str, Callable[..., Task]] = {}
 
 
 def register(name: str, factory: Callable[[], Task]) -> None:
@@ -28,11 +29,16 @@ def registered_tasks() -> tuple[str, ...]:
 
 
 @functools.cache
-def make(name: str) -> Task:
-    """The task registered under `name`."""
+def make(name: str, **options: Any) -> Task:
+    """The task registered under `name`; `options` go to its factory (robot tasks take `backend`)."""
     if name not in _FACTORIES:
         raise ValueError(f"unknown task {name!r}; registered: {sorted(_FACTORIES)}")
-    return _FACTORIES[name]()
+    try:
+        return _FACTORIES[name](**options)
+    except TypeError as e:
+        if not options:
+            raise
+        raise ValueError(f"task {name!r} does not take the options {options}: {e}") from e
 
 
 def _register_builtin() -> None:
@@ -40,6 +46,17 @@ def _register_builtin() -> None:
 
     register("obstacle2d", obstacle2d.make)
     register("object2d", object2d.make)
+
+    def push(scene: str, height: float) -> Callable[..., Task]:
+        def build(backend: str = "auto") -> Task:
+            from envs import push  # imports mujoco only when a robot task is built
+
+            return push.make(scene, height, backend=backend)
+
+        return build
+
+    register("push_cube", push("push_cube", 0.025))
+    register("push_sphere", push("push_sphere", 0.03))
 
 
 _register_builtin()

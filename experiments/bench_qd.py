@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import report
 
 import envs
 from mqd_jax import Config, run_mqd
@@ -133,7 +132,7 @@ def main() -> None:
     base = rows[0][1]["ms_per_gen"]
     archive_only = rows[0][1]["archive_ms"]
 
-    machine = f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}"
+    machine = report.machine()
     lines = [
         f"2D Obstacle, population {cfg.population_size}, {args.generations} generations, K {cfg.k}, "
         f"t_dist {cfg.t_dist}; {machine}.", "",
@@ -147,11 +146,7 @@ def main() -> None:
     lines += ["", f"pyribs spent {archive_only:.2f} ms / generation in its archive and emitter (ask/tell) and the "
               f"rest in the numpy rollouts; our whole generation is {rows[1][1]['ms_per_gen'] / archive_only:.2f}x "
               "pyribs' ask/tell alone."]
-    table = "\n".join(lines)
-    print(table)
-    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    with open(args.out, "w") as f:
-        f.write(table + "\n")
+    report.write(lines, args.out)
 
 
 if __name__ == "__main__":

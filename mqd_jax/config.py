@@ -20,6 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 
 ALGORITHMS = ("mqd", "qd", "random")
+PHYSICS_BACKENDS = ("auto", "mujoco", "mjx")
 
 
 @struct.dataclass
@@ -91,6 +92,9 @@ class Config:
     # evaluate exactly `population_size` of them (see filter.budgeted_order).
     budgeted: bool = False
     pool_factor: int = 4
+    # Physics of the robot tasks: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX,
+    # accelerators) or "auto" ("mujoco" on a CPU backend, else "mjx").
+    physics_backend: str = "auto"
 
     def __post_init__(self) -> None:
         from envs import registered_tasks
@@ -113,6 +117,8 @@ class Config:
             v = getattr(self, name)
             _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
         _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
+        _check(self.physics_backend in PHYSICS_BACKENDS, "physics_backend", self.physics_backend,
+               f"one of {PHYSICS_BACKENDS}")
         _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
         _check(not self.budgeted or self.algorithm == "mqd", "budgeted", self.budgeted,
                f"False unless algorithm='mqd' (it is {self.algorithm!r})")

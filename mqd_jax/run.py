@@ -46,7 +46,9 @@ def get_task(cfg: Config) -> Task:
     """The task `cfg.task` names (from the `envs` registry)."""
     from envs import make
 
-    return make(cfg.task)
+    if cfg.physics_backend == "auto":
+        return make(cfg.task)
+    return make(cfg.task, backend=cfg.physics_backend)
 
 
 @functools.cache

@@ -21,7 +21,7 @@ def test_paper_presets_match_table_ii():
     ("learning_rate", -1e-3), ("batch_size", 0), ("num_batches", -1), ("warmup_samples", -5),
     ("hidden_size", True), ("capacity", 0), ("archive_capacity", 0), ("iso_sigma", -0.1),
     ("line_sigma", float("inf")), ("adaptation_step_size", 0), ("adaptation_steps", -1),
-    ("coverage_resolution", 4), ("neighbour_slack", -1),
+    ("coverage_resolution", 4), ("neighbour_slack", -1), ("physics_backend", "gpu"), ("pool_factor", 0),
 ])
 def test_invalid_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=f"Config.{field}="):

@@ -1,0 +1,70 @@
+"""2D Object: push a round object with a round agent (5 sub-actions).
+
+The agent (radius `AGENT_RADIUS`) moves as in `arena2d`, its centre kept
+inside the arena. When it overlaps the object (radius `OBJECT_RADIUS`) it pushes
+it quasi-statically: the object is moved along the line of centres until the two
+just touch, then kept inside the arena; if the wall stopped it, the agent is put
+back in contact. Behavior: the object's final position. Quality: `delta_min /
+delta` with `delta` the object's path length and `delta_min` the straight line
+from its start (1 if it never moved).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from envs import arena2d
+from mqd_jax.task import Task
+
+AGENT_START = (0.5, 0.2)
+OBJECT_START = (0.5, 0.5)
+AGENT_RADIUS = 0.02
+OBJECT_RADIUS = 0.05
+
+
+def _separate(mover: arena2d.Array, fixed: arena2d.Array, gap: float) -> arena2d.Array:
+    """Moves mover[B, 2] away from fixed[B, 2] along their line of centres to distance >= gap."""
+    xp = arena2d.xp_of(mover, fixed)
+    diff = mover - fixed
+    dist = xp.linalg.norm(diff, axis=1, keepdims=True)
+    direction = xp.where(dist > 1e-9, diff / xp.maximum(dist, 1e-9), xp.asarray([0.0, 1.0], np.float32))
+    return xp.where(dist < gap, fixed + direction * gap, mover)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Object2D(Task):
+    agent_start: tuple[float, float] = AGENT_START
+    object_start: tuple[float, float] = OBJECT_START
+
+    def evaluate(self, actions: arena2d.Array, key: jax.Array | None = None):
+        """Rolls out actions[B, 15]; numpy in, numpy out (JAX in, JAX out). `key` is unused."""
+        xp = arena2d.xp_of(actions)
+        gap = AGENT_RADIUS + OBJECT_RADIUS
+        no_boxes = xp.zeros((0, 4), np.float32)
+
+        def step(carry, delta):
+            agent, obj, travelled = carry
+            agent = arena2d.move(agent, delta, no_boxes, AGENT_RADIUS, 1 - AGENT_RADIUS)
+            new_obj = xp.clip(_separate(obj, agent, gap), OBJECT_RADIUS, 1 - OBJECT_RADIUS)
+            agent = xp.clip(_separate(agent, new_obj, gap), AGENT_RADIUS, 1 - AGENT_RADIUS)
+            return agent, new_obj, travelled + xp.linalg.norm(new_obj - obj, axis=1)
+
+        batch = actions.shape[0]
+        start = lambda p: xp.broadcast_to(xp.asarray(p, np.float32), (batch, 2))  # noqa: E731
+        init = (start(self.agent_start), start(self.object_start), xp.zeros(batch, np.float32))
+        _, final, travelled = arena2d.rollout(actions, init, step)
+        shortest = xp.linalg.norm(final - xp.asarray(self.object_start, np.float32), axis=1)
+        return final, arena2d.path_quality(shortest, travelled), xp.ones(batch, bool)
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        """Object centres stay OBJECT_RADIUS away from the walls."""
+        lo, hi = OBJECT_RADIUS, 1 - OBJECT_RADIUS
+        return np.all((points >= lo) & (points <= hi), axis=-1)
+
+
+def make() -> Object2D:
+    low, high = arena2d.action_bounds(5)
+    return Object2D(low, high, (0.0, 0.0), (1.0, 1.0))

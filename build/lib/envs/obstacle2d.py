@@ -1,0 +1,113 @@
+"""2D Obstacle: navigate a point agent around obstacles (3 sub-actions).
+
+Behavior: the agent's final position. Quality: `delta_min / delta`, where
+`delta` is the length of the path the agent travelled and `delta_min` the length
+of the shortest obstacle-free path from the start to the final position. Among
+axis-aligned boxes that shortest path bends only at box corners, so it is exact:
+a visibility graph over the start and the corners, solved once on the host.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from envs import arena2d
+from mqd_jax.task import Task
+
+START = (0.5, 0.1)
+# (x_lo, y_lo, x_hi, y_hi): a wall with a gap, a block behind the gap and a
+# block right above the start.
+OBSTACLES = (
+    (0.0, 0.5, 0.35, 0.55),
+    (0.65, 0.5, 1.0, 0.55),
+    (0.35, 0.75, 0.65, 0.8),
+    (0.4, 0.2, 0.6, 0.25),
+)
+
+
+def segment_blocked(p: jax.Array, q: jax.Array, boxes: jax.Array) -> jax.Array:
+    """Whether segment p->q passes through the open interior of any box.
+
+    Slab test with strict inequalities, so a segment along a face or through a
+    corner is not blocked. Works on numpy and JAX arrays (p, q: [..., 2]).
+    """
+    xp = arena2d.xp_of(p, q)
+    d = q - p
+    t_lo = xp.zeros((*p.shape[:-1], boxes.shape[0]))
+    t_hi = xp.ones_like(t_lo)
+    inside = xp.ones_like(t_lo, dtype=bool)
+    for ax in range(2):
+        lo, hi = boxes[:, ax], boxes[:, ax + 2]
+        pa, da = p[..., ax][..., None], d[..., ax][..., None]
+        still = da == 0
+        safe = xp.where(still, 1.0, da)
+        t1, t2 = (lo - pa) / safe, (hi - pa) / safe
+        t_lo = xp.where(still, t_lo, xp.maximum(t_lo, xp.minimum(t1, t2)))
+        t_hi = xp.where(still, t_hi, xp.minimum(t_hi, xp.maximum(t1, t2)))
+        inside = inside & xp.where(still, (lo < pa) & (pa < hi), True)
+    return xp.any(inside & (t_lo < t_hi), axis=-1)
+
+
+def _graph(start: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes (start + box corners inside the arena) and their geodesic distance from start."""
+    corners = np.concatenate([boxes[:, [0, 1]], boxes[:, [2, 1]], boxes[:, [0, 3]], boxes[:, [2, 3]]])
+    corners = corners[np.all((corners >= 0) & (corners <= 1), axis=1)]
+    nodes = np.concatenate([start[None], corners]).astype(np.float64)
+    n = len(nodes)
+    p, q = np.repeat(nodes, n, 0), np.tile(nodes, (n, 1))
+    blocked = segment_blocked(p, q, boxes).reshape(n, n)
+    dist = np.where(blocked, np.inf, np.linalg.norm(nodes[:, None] - nodes[None], axis=-1))
+    for m in range(n):  # Floyd-Warshall: a handful of nodes.
+        dist = np.minimum(dist, dist[:, m:m + 1] + dist[m:m + 1, :])
+    return nodes.astype(np.float32), dist[0].astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Obstacle2D(Task):
+    start: tuple[float, float] = START
+    obstacles: tuple[tuple[float, float, float, float], ...] = OBSTACLES
+
+    def __post_init__(self) -> None:
+        nodes, dist = _graph(np.asarray(self.start), np.asarray(self.obstacles, np.float64))
+        object.__setattr__(self, "_nodes", nodes)
+        object.__setattr__(self, "_node_dist", dist)
+
+    def shortest_path(self, points: arena2d.Array) -> arena2d.Array:
+        """Geodesic distance from the start to each free point points[B, 2]."""
+        xp = arena2d.xp_of(points)
+        nodes = xp.asarray(self._nodes)
+        p = xp.broadcast_to(points[:, None, :], (points.shape[0], *nodes.shape))
+        seen = ~segment_blocked(xp.broadcast_to(nodes, p.shape), p, xp.asarray(self.obstacles, np.float32))
+        via = xp.asarray(self._node_dist) + xp.linalg.norm(p - nodes, axis=-1)
+        return xp.where(seen, via, xp.inf).min(axis=-1)
+
+    def evaluate(self, actions: arena2d.Array, key: jax.Array | None = None):
+        """Rolls out actions[B, 9]; numpy in, numpy out (JAX in, JAX out). `key` is unused."""
+        xp = arena2d.xp_of(actions)
+        boxes = xp.asarray(self.obstacles, np.float32)
+
+        def step(carry, delta):
+            pos, travelled = carry
+            new = arena2d.move(pos, delta, boxes)
+            return new, travelled + xp.linalg.norm(new - pos, axis=1)
+
+        batch = actions.shape[0]
+        init = (xp.broadcast_to(xp.asarray(self.start, np.float32), (batch, 2)), xp.zeros(batch, np.float32))
+        final, travelled = arena2d.rollout(actions, init, step)
+        quality = arena2d.path_quality(self.shortest_path(final), travelled)
+        return final, quality, xp.ones(batch, bool)
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        """Free space: outside every obstacle (all of it is connected to the start)."""
+        boxes = np.asarray(self.obstacles)
+        x, y = points[..., 0, None], points[..., 1, None]
+        inside = (boxes[:, 0] < x) & (x < boxes[:, 2]) & (boxes[:, 1] < y) & (y < boxes[:, 3])
+        return ~inside.any(-1)
+
+
+def make() -> Obstacle2D:
+    low, high = arena2d.action_bounds(3)
+    return Obstacle2D(low, high, (0.0, 0.0), (1.0, 1.0))

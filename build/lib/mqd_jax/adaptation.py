@@ -1,0 +1,142 @@
+"""Skill adaptation toward arbitrary goal behaviors (paper, "Adaptation of Skills").
+
+For a goal b*, start from the repertoire skill nearest to it in behavior space,
+(a_0, b_0), and step
+
+    a_{j+1} = clip(a_j + lambda * pinv(J(a_j)) (b* - b_j)),   b_{j+1} = rollout(a_{j+1}),
+
+until ||b* - b_j|| < t_dist or `adaptation_steps` steps were made. Methods:
+
+* "nearest": no step; the nearest skill itself.
+* "linear" (the paper's baseline): J = B pinv(G), with G [n, K] the K nearest
+  repertoire actions to a_j minus a_j (nearest in normalized action units, so
+  that every action dimension counts alike) and B [d, K] their behaviors minus
+  b_j. With K >= n and G of full rank this is the paper's B G^T (G G^T)^-1;
+  with K < n (G G^T singular) it is the minimum-norm J with J G = B.
+* "model": J is the Jacobian of the model's behavior prediction in real units
+  at a_j, from `jax.jacfwd`.
+
+Every goal runs in parallel; a goal that has stopped is masked out of the
+remaining steps' rollouts. The result is the best iterate (lowest behavioral
+error among a_0 and the evaluated a_j), so no method ends worse than
+"nearest". A failed or non-finite rollout counts as a step and ends that
+goal's adaptation.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from mqd_jax import model, neighbours
+from mqd_jax.config import Config, Params
+from mqd_jax.run import State, get_task
+from mqd_jax.task import Task
+
+METHODS = ("nearest", "linear", "model")
+
+
+@struct.dataclass
+class Adapted:
+    """The outcome for G goals.
+
+    Attributes:
+      actions: [G, n] the best action found for each goal.
+      behaviors: [G, d] its behavior.
+      errors: [G] behavioral error ||b* - behavior||.
+      steps: [G] int32 adaptation steps made.
+      evaluations: [G] int32 rollouts spent (one per step).
+    """
+
+    actions: jax.Array
+    behaviors: jax.Array
+    errors: jax.Array
+    steps: jax.Array
+    evaluations: jax.Array
+
+
+Jacobian = Callable[[jax.Array, jax.Array], jax.Array]
+
+
+def _linear_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
+    """J [G, d, n] from the K repertoire skills nearest to each a_j in action space."""
+    rep = state.repertoire
+
+    def jacobian(a: jax.Array, b: jax.Array) -> jax.Array:
+        d = neighbours.sq_dists(model.normalize_actions(a, task), model.normalize_actions(rep.actions, task))
+        found, idx = neighbours.k_smallest(jnp.where(rep.valid[None], d, jnp.inf), cfg.k)
+        keep = jnp.isfinite(found)[..., None]
+        g = jnp.where(keep, rep.actions[jnp.maximum(idx, 0)] - a[:, None], 0.0)  # [G, K, n] = G^T
+        bb = jnp.where(keep, rep.behaviors[jnp.maximum(idx, 0)] - b[:, None], 0.0)  # [G, K, d] = B^T
+        return jnp.einsum("gkd,gkn->gdn", bb, jnp.linalg.pinv(jnp.swapaxes(g, 1, 2)))
+
+    return jacobian
+
+
+def _model_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
+    """J [G, d, n] of the model's behavior prediction (real units) at each a_j."""
+    behavior = lambda a: model.predict(state.model, a, cfg, task)[0]  # noqa: E731
+    return lambda a, b: jax.vmap(jax.jacfwd(behavior))(a)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "method"))
+def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str, params: Params) -> Adapted:
+    task = get_task(cfg)
+    rep = state.repertoire
+    nearest = jnp.argmin(jnp.where(rep.valid[None], neighbours.sq_dists(goals, rep.behaviors), jnp.inf), axis=1)
+    a0, b0 = rep.actions[nearest], rep.behaviors[nearest]
+    error = lambda b: jnp.linalg.norm(goals - b, axis=1)  # noqa: E731
+    zeros = jnp.zeros(goals.shape[0], jnp.int32)
+    if method == "nearest":
+        return Adapted(a0, b0, error(b0), zeros, zeros)
+    jacobian = (_linear_jacobian if method == "linear" else _model_jacobian)(state, cfg, task)
+    low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
+
+    def step(j: jax.Array, carry: tuple) -> tuple:
+        a, b, best, steps, active = carry
+        active = active & (error(b) >= params.t_dist)
+        direction = jnp.einsum("gnd,gd->gn", jnp.linalg.pinv(jacobian(a, b)), goals - b)
+        new_a = jnp.clip(a + params.adaptation_step_size * direction, low, high)
+        new_b, _, valid = task.evaluate_masked(new_a, jax.random.fold_in(key, j), active)
+        ok = active & valid & jnp.isfinite(new_b).all(axis=1)
+        a, b = jnp.where(ok[:, None], new_a, a), jnp.where(ok[:, None], new_b, b)
+        better = ok & (error(b) < best.errors)
+        best = jax.tree.map(lambda new, old: jnp.where(better.reshape((-1,) + (1,) * (old.ndim - 1)), new, old),
+                            Adapted(a, b, error(b), best.steps, best.evaluations), best)
+        return a, b, best, steps + active, ok
+
+    init = (a0, b0, Adapted(a0, b0, error(b0), zeros, zeros), zeros, jnp.ones(goals.shape[0], bool))
+    _, _, best, steps, _ = jax.lax.fori_loop(0, cfg.adaptation_steps, step, init)
+    return best.replace(steps=steps, evaluations=steps)
+
+
+def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str,
+          params: Params | None = None) -> Adapted:
+    """Adapts the repertoire of `state` toward each goal behavior goals[G, d], in one jitted call.
+
+    Args:
+      state: a run's state (from `run_mqd` or `run_generations`); "model" needs
+        an M-QD state whose model has trained.
+      goals: [G, d] desired behaviors (anywhere; outside the behavior box too).
+      key: PRNG key for the rollouts.
+      cfg: the run's config (t_dist, adaptation_step_size, adaptation_steps, k).
+      method: "nearest", "linear" or "model".
+      params: traced `Params` (t_dist, adaptation_step_size); default `cfg.params()`.
+    """
+    task = get_task(cfg)
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} is invalid: expected one of {METHODS}")
+    goals = jnp.asarray(goals, jnp.float32)
+    if goals.ndim != 2 or goals.shape[1] != task.behavior_dim:
+        raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
+    concrete = not isinstance(state.repertoire.count, jax.core.Tracer)
+    if concrete and int(state.repertoire.count) == 0:
+        raise ValueError("the repertoire is empty: run the search first")
+    if method == "model" and concrete and int(state.model.steps) == 0:
+        raise ValueError("method 'model' needs a trained model: this state's model never trained "
+                         "(a QD or RANDOM run, or an M-QD run that did not finish warm-up)")
+    return _adapt(state, goals, key, cfg, method, cfg.params() if params is None else params)

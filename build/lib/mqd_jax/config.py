@@ -1,0 +1,154 @@
+"""Static configuration (`Config`) and traced runtime parameters (`Params`).
+
+`Config` holds every hyperparameter of the paper's Table II plus the choices the
+paper leaves open. It is a frozen, hashable dataclass, so it can be a static
+argument of `jax.jit`; every field is validated at construction (and therefore
+also through `dataclasses.replace`), before anything is traced.
+
+`Params` holds the scalar thresholds and rates as a pytree of arrays, so that one
+compiled run can be `jax.vmap`-ed over them (the way evosax separates `params`
+from the static config). `Config.params()` gives the defaults from the config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax.numpy as jnp
+from flax import struct
+
+ALGORITHMS = ("mqd", "qd", "random")
+PHYSICS_BACKENDS = ("auto", "mujoco", "mjx")
+
+
+@struct.dataclass
+class Params:
+    """Scalar hyperparameters that may be traced (all float32 scalars)."""
+
+    t_dist: jnp.ndarray
+    t_nov: jnp.ndarray
+    t_qua: jnp.ndarray
+    learning_rate: jnp.ndarray
+    iso_sigma: jnp.ndarray
+    line_sigma: jnp.ndarray
+    adaptation_step_size: jnp.ndarray
+
+
+def _check(ok: bool, name: str, value: Any, allowed: str) -> None:
+    if not ok:
+        raise ValueError(f"Config.{name}={value!r} is invalid: expected {allowed}")
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_real(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Every hyperparameter of a run. Defaults are Table II's 2D column.
+
+    Shape-determining fields (population, capacity, K, hidden size, generations,
+    task, algorithm) are static. The scalar thresholds and rates are also copied
+    into `Params` by `params()`, which is what the jitted code reads, so they can
+    be overridden by traced values.
+    """
+
+    task: str = "obstacle2d"
+    algorithm: str = "qd"
+    max_generations: int = 250
+    population_size: int = 100
+    k: int = 5
+    t_dist: float = 0.02
+    t_nov: float = 0.04
+    t_qua: float = 0.0
+    learning_rate: float = 1e-3
+    batch_size: int = 16
+    num_batches: int = 500
+    warmup_samples: int = 1000
+    hidden_size: int = 32
+    adaptation_step_size: float = 0.1
+    adaptation_steps: int = 10
+    # Repertoire and rejected-archive sizes (fixed-size masked arrays).
+    capacity: int = 4096
+    archive_capacity: int = 4096
+    # Iso+line variation (Vassiliades & Mouret 2018): Gaussian mutation with
+    # std `iso_sigma` times the action range, plus a crossover step of std
+    # `line_sigma` along the line between the two parents.
+    iso_sigma: float = 0.02
+    line_sigma: float = 0.1
+    # Neighbour-list length kept per skill (>= k); longer lists are recomputed
+    # less often when neighbours are replaced. Does not change any result.
+    neighbour_slack: int = 3
+    # Cells per behavior-space axis of the coverage grid.
+    coverage_resolution: int = 256
+    # Budgeted filtering (M-QD only; off is the paper's filter): sample
+    # `pool_factor` x population candidates, rank them with the model and
+    # evaluate exactly `population_size` of them (see filter.budgeted_order).
+    budgeted: bool = False
+    pool_factor: int = 4
+    # Physics of the robot tasks: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX,
+    # accelerators) or "auto" ("mujoco" on a CPU backend, else "mjx").
+    physics_backend: str = "auto"
+
+    def __post_init__(self) -> None:
+        from envs import registered_tasks
+
+        tasks = registered_tasks()
+        _check(isinstance(self.task, str) and self.task in tasks, "task", self.task,
+               f"one of the registered tasks {sorted(tasks)}")
+        _check(self.algorithm in ALGORITHMS, "algorithm", self.algorithm, f"one of {ALGORITHMS}")
+        for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1),
+                         ("batch_size", 1), ("num_batches", 1), ("warmup_samples", 0),
+                         ("hidden_size", 1), ("adaptation_steps", 0), ("capacity", 1),
+                         ("archive_capacity", 1), ("neighbour_slack", 0),
+                         ("coverage_resolution", 8), ("pool_factor", 1)):
+            v = getattr(self, name)
+            _check(_is_int(v) and v >= lo, name, v, f"an int >= {lo}")
+        for name in ("t_dist", "learning_rate", "adaptation_step_size"):
+            v = getattr(self, name)
+            _check(_is_real(v) and v > 0, name, v, "a finite float > 0")
+        for name in ("t_nov", "iso_sigma", "line_sigma"):
+            v = getattr(self, name)
+            _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
+        _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
+        _check(self.physics_backend in PHYSICS_BACKENDS, "physics_backend", self.physics_backend,
+               f"one of {PHYSICS_BACKENDS}")
+        _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
+        _check(not self.budgeted or self.algorithm == "mqd", "budgeted", self.budgeted,
+               f"False unless algorithm='mqd' (it is {self.algorithm!r})")
+        budget = self.max_generations * self.population_size
+        _check(self.algorithm != "mqd" or self.warmup_samples < budget, "warmup_samples", self.warmup_samples,
+               f"an int < max_generations * population_size ({budget}) for M-QD, or the model is never used")
+        _check(self.population_size <= self.capacity, "population_size", self.population_size,
+               f"an int <= capacity ({self.capacity})")
+
+    @classmethod
+    def paper_2d(cls, **overrides: Any) -> Config:
+        """Table II, 2D column (the 2D Obstacle task unless `task` is given)."""
+        return cls(**overrides)
+
+    @classmethod
+    def paper_robot(cls, **overrides: Any) -> Config:
+        """Table II, robotic column: 100 generations, 64 hidden neurons."""
+        base = dict(max_generations=100, hidden_size=64)
+        return cls(**{**base, **overrides})
+
+    @property
+    def neighbours(self) -> int:
+        """Length of the neighbour list kept per skill."""
+        return self.k + self.neighbour_slack
+
+    def params(self) -> Params:
+        """The traced scalar parameters, initialised from this config."""
+        f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        return Params(
+            t_dist=f(self.t_dist), t_nov=f(self.t_nov), t_qua=f(self.t_qua),
+            learning_rate=f(self.learning_rate), iso_sigma=f(self.iso_sigma),
+            line_sigma=f(self.line_sigma), adaptation_step_size=f(self.adaptation_step_size),
+        )

@@ -1,0 +1,127 @@
+"""M-QD's forward model phi(a) = (b, q) and its online training.
+
+The network (paper, "Model-Based Quality-Diversity Search"): one hidden layer
+with ReLU, tanh on the outputs. It works in normalized units: actions are
+mapped from their bounds to [-1, 1], behaviors from the behavior box to
+[-1, 1], and qualities from the task's fixed `quality_range` to [-1, 1], so
+the tanh outputs cover exactly the bounded spaces. `predict` maps back to real
+units and is the one function the filter and skill adaptation both use.
+
+Training (after every generation once warm-up is over): `num_batches` Adam
+steps on the mean-squared error in normalized units, each on `batch_size`
+skills drawn uniformly (with replacement) from the repertoire.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from mqd_jax.config import Config
+from mqd_jax.repertoire import Repertoire
+from mqd_jax.task import Task
+
+
+class MLP(nn.Module):
+    """normalized actions [..., n] -> normalized (behavior, quality) [..., d + 1]."""
+
+    hidden_size: int
+    out_size: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        x = nn.relu(nn.Dense(self.hidden_size)(x))
+        return jnp.tanh(nn.Dense(self.out_size)(x))
+
+
+@struct.dataclass
+class ModelState:
+    """The model's parameters and optimizer state.
+
+    Attributes:
+      params: Flax variables of the MLP: Dense_0 kernel [n, H], bias [H];
+        Dense_1 kernel [H, d + 1], bias [d + 1].
+      opt_state: Adam's moment estimates (`optax.ScaleByAdamState`).
+      steps: int32, training steps taken so far.
+    """
+
+    params: Any
+    opt_state: optax.OptState
+    steps: jax.Array
+
+
+# Adam's direction; the learning rate multiplies it outside, so that the rate
+# can be a traced `Params` value.
+_ADAM = optax.scale_by_adam()
+
+
+def network(cfg: Config, task: Task) -> MLP:
+    return MLP(hidden_size=cfg.hidden_size, out_size=task.behavior_dim + 1)
+
+
+def _bounds(task: Task) -> tuple[jax.Array, jax.Array]:
+    """Low and high of the model's outputs in real units, [d + 1] each."""
+    q_low, q_high = task.quality_range
+    low = jnp.asarray((*task.behavior_low, q_low), jnp.float32)
+    high = jnp.asarray((*task.behavior_high, q_high), jnp.float32)
+    return low, high
+
+
+def _to_unit(x: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+    return 2.0 * (x - low) / (high - low) - 1.0
+
+
+def normalize_actions(actions: jax.Array, task: Task) -> jax.Array:
+    """actions [..., n] in real units -> [-1, 1] per dimension."""
+    low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
+    return _to_unit(actions, low, high)
+
+
+def normalize_targets(behaviors: jax.Array, qualities: jax.Array, task: Task) -> jax.Array:
+    """behaviors [..., d] and qualities [...] -> normalized targets [..., d + 1]."""
+    return _to_unit(jnp.concatenate([behaviors, qualities[..., None]], axis=-1), *_bounds(task))
+
+
+def init(key: jax.Array, cfg: Config, task: Task) -> ModelState:
+    """Random parameters (Flax's default initialisers) and a fresh Adam state."""
+    params = network(cfg, task).init(key, jnp.zeros((1, task.action_dim), jnp.float32))
+    return ModelState(params=params, opt_state=_ADAM.init(params), steps=jnp.int32(0))
+
+
+def predict(model: ModelState, actions: jax.Array, cfg: Config, task: Task) -> tuple[jax.Array, jax.Array]:
+    """phi in real units: actions [..., n] -> behaviors [..., d], qualities [...]."""
+    y = network(cfg, task).apply(model.params, normalize_actions(actions, task))
+    low, high = _bounds(task)
+    y = low + (y + 1.0) * (high - low) / 2.0
+    return y[..., :-1], y[..., -1]
+
+
+def train(model: ModelState, key: jax.Array, rep: Repertoire, cfg: Config, task: Task,
+          learning_rate: jax.Array) -> tuple[ModelState, jax.Array]:
+    """`cfg.num_batches` Adam steps on mini-batches from the repertoire's skills.
+
+    The repertoire must hold at least one skill (its valid entries are the
+    prefix [0, count)). Returns the new state and the mean loss over the steps.
+    """
+    net = network(cfg, task)
+    rows = jax.random.randint(key, (cfg.num_batches, cfg.batch_size), 0, rep.count)
+    inputs = normalize_actions(rep.actions, task)
+    targets = normalize_targets(rep.behaviors, rep.qualities, task)
+
+    def loss_fn(params: Any, idx: jax.Array) -> jax.Array:
+        return ((net.apply(params, inputs[idx]) - targets[idx]) ** 2).mean()
+
+    def step(carry: tuple[Any, optax.OptState], idx: jax.Array) -> tuple[tuple[Any, optax.OptState], jax.Array]:
+        params, opt_state = carry
+        loss, grads = jax.value_and_grad(loss_fn)(params, idx)
+        direction, opt_state = _ADAM.update(grads, opt_state)
+        params = jax.tree.map(lambda p, u: p - learning_rate * u, params, direction)
+        return (params, opt_state), loss
+
+    (params, opt_state), losses = jax.lax.scan(step, (model.params, model.opt_state), rows, unroll=2)
+    return ModelState(params=params, opt_state=opt_state, steps=model.steps + cfg.num_batches), losses.mean()

@@ -1,0 +1,193 @@
+"""Exact nearest neighbours in behavior space, and the novelty they give.
+
+Novelty of a skill (paper, "Quality-Diversity Search") is the mean Euclidean
+distance to its K nearest repertoire neighbours. Recomputing it densely costs
+O(capacity^2) per generation, which a CPU cannot afford, so each skill keeps a
+list of its nearest neighbours that stays exact under the few changes a
+generation makes:
+
+* every list holds up to L = K + slack neighbours, in ascending order, and a
+  *certainty radius* r: every other skill closer than r is in the list
+  (r = inf: every other skill is in it);
+* a replaced skill is removed from the lists that hold it; the list stays
+  exact (its radius still holds), only shorter;
+* a new skill is merged into the lists whose radius it falls inside;
+* a list is recomputed from scratch only for new skills and for lists that
+  removals left with fewer than K certain neighbours.
+
+All distances are squared until novelty takes the square root.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TypeVar
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+Carry = TypeVar("Carry")
+_BLOCK = 32
+
+
+def sq_dists(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Squared Euclidean distances between rows: a[M, d], b[N, d] -> [M, N]."""
+    return sum((a[:, None, i] - b[None, :, i]) ** 2 for i in range(a.shape[1]))
+
+
+def _passes(values: jax.Array, ids: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
+    """k rounds of min-extraction; ties go to the smaller id. values, ids: [R, N]."""
+    big = jnp.iinfo(jnp.int32).max
+    out_v, out_i = [], []
+    for _ in range(k):
+        m = values.min(axis=1)
+        sel = jnp.where(values == m[:, None], ids, big).min(axis=1)
+        out_v.append(m)
+        out_i.append(jnp.where(jnp.isfinite(m), sel, -1))
+        values = jnp.where(ids == sel[:, None], jnp.inf, values)
+    return jnp.stack(out_v, 1), jnp.stack(out_i, 1)
+
+
+def k_smallest(values: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
+    """The k smallest entries of each row of values[R, N], ascending, with their columns.
+
+    Exact, ties broken by the smaller column; missing entries (inf) get column -1.
+    The k smallest lie in the k blocks of columns with the smallest minima, so
+    only those k * 32 columns are searched.
+    """
+    r, n = values.shape
+    cols = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (r, n))
+    if n <= 4 * k * _BLOCK:
+        return _passes(values, cols, k)
+    pad = -n % _BLOCK
+    values = jnp.pad(values, ((0, 0), (0, pad)), constant_values=jnp.inf)
+    blocks = values.reshape(r, -1, _BLOCK)
+    block_ids = jnp.broadcast_to(jnp.arange(blocks.shape[1], dtype=jnp.int32), blocks.shape[:2])
+    _, chosen = _passes(blocks.min(axis=2), block_ids, k)
+    # Rows with fewer than k finite blocks get -1: read block 0, keep none of it.
+    picked = jnp.take_along_axis(blocks, jnp.maximum(chosen, 0)[:, :, None], axis=1)
+    picked = jnp.where(chosen[:, :, None] >= 0, picked, jnp.inf).reshape(r, -1)
+    picked_cols = (chosen[:, :, None] * _BLOCK + jnp.arange(_BLOCK)).reshape(r, -1)
+    return _passes(picked, picked_cols.astype(jnp.int32), k)
+
+
+def for_each_chunk(mask: jax.Array, size: int, fn: Callable[[jax.Array, Carry], Carry], carry: Carry) -> Carry:
+    """Calls fn(rows[size], carry) on the set rows of mask[C], `size` at a time.
+
+    Unused places in `rows` hold C (out of range): gathers clamp, so `fn` must
+    drop writes to them (`.at[rows].set(..., mode="drop")`).
+    """
+    def body(state: tuple[jax.Array, Carry]) -> tuple[jax.Array, Carry]:
+        todo, c = state
+        rows = jnp.nonzero(todo, size=size, fill_value=todo.shape[0])[0]
+        return todo.at[rows].set(False, mode="drop"), fn(rows, c)
+
+    return jax.lax.while_loop(lambda s: s[0].any(), body, (mask, carry))[1]
+
+
+@struct.dataclass
+class NeighbourLists:
+    """Per-skill nearest-neighbour lists over a repertoire of capacity C.
+
+    Attributes:
+      sq_dist: [C, L] squared distances, ascending among finite entries; inf marks
+        an empty place (removals leave holes).
+      index: [C, L] int32 slot of each neighbour, -1 for an empty place.
+      radius: [C] squared certainty radius: every skill closer than it is listed.
+    """
+
+    sq_dist: jax.Array
+    index: jax.Array
+    radius: jax.Array
+
+    @classmethod
+    def empty(cls, capacity: int, length: int) -> NeighbourLists:
+        return cls(
+            sq_dist=jnp.full((capacity, length), jnp.inf, jnp.float32),
+            index=jnp.full((capacity, length), -1, jnp.int32),
+            radius=jnp.full((capacity,), jnp.inf, jnp.float32),
+        )
+
+    @property
+    def length(self) -> int:
+        return self.sq_dist.shape[1]
+
+
+def _recompute(lists: NeighbourLists, rows: jax.Array, d: jax.Array) -> NeighbourLists:
+    """Rebuilds the lists of `rows` from their distances d[len(rows), C] to every skill (inf: none)."""
+    v, i = k_smallest(d, lists.length + 1)
+    return NeighbourLists(
+        sq_dist=lists.sq_dist.at[rows].set(v[:, :-1], mode="drop"),
+        index=lists.index.at[rows].set(i[:, :-1], mode="drop"),
+        radius=lists.radius.at[rows].set(v[:, -1], mode="drop"),
+    )
+
+
+def _merge(lists: NeighbourLists, rows: jax.Array, new_d: jax.Array, new_slots: jax.Array) -> NeighbourLists:
+    """Merges candidate neighbours new_d[P, C] (inf: not a candidate) into `rows`."""
+    length = lists.length
+    v = jnp.concatenate([lists.sq_dist[rows], new_d[:, rows].T], axis=1)
+    i = jnp.concatenate([lists.index[rows], jnp.broadcast_to(new_slots, (rows.shape[0], new_slots.shape[0]))], 1)
+    v, i = _passes(v, jnp.where(jnp.isfinite(v), i, jnp.iinfo(jnp.int32).max), length + 1)
+    return NeighbourLists(
+        sq_dist=lists.sq_dist.at[rows].set(v[:, :-1], mode="drop"),
+        index=lists.index.at[rows].set(i[:, :-1], mode="drop"),
+        radius=lists.radius.at[rows].set(jnp.minimum(lists.radius[rows], v[:, -1]), mode="drop"),
+    )
+
+
+def update(
+    lists: NeighbourLists,
+    behaviors: jax.Array,
+    valid: jax.Array,
+    new_d: jax.Array,
+    removed: jax.Array,
+    new_slots: jax.Array,
+    k: int,
+    chunk: int,
+) -> NeighbourLists:
+    """Brings the lists up to date after a generation's insertions.
+
+    Args:
+      lists: lists exact for the repertoire before the generation.
+      behaviors: [C, d] behaviors after the generation; valid: [C] their mask.
+      new_d: [P, C] squared distances from each new skill to every skill after
+        the generation (inf for invalid slots).
+      removed: [C] slots whose previous skill was replaced this generation.
+      new_slots: [P] slot of each new skill; C for a candidate that is not one.
+      k: the novelty's K; chunk: rows processed at a time.
+    """
+    capacity = valid.shape[0]
+    gone = (lists.index >= 0) & removed[jnp.maximum(lists.index, 0)]
+    lists = lists.replace(sq_dist=jnp.where(gone, jnp.inf, lists.sq_dist), index=jnp.where(gone, -1, lists.index))
+    is_new = new_slots < capacity
+    changed = jnp.zeros_like(valid).at[new_slots].set(True, mode="drop")
+
+    # New skills' own lists, from the distances at hand (the diagonal is self).
+    own = jnp.where(jnp.arange(capacity) == new_slots[:, None], jnp.inf, new_d)
+    lists = for_each_chunk(is_new, chunk, lambda rows, ls: _recompute(
+        ls, jnp.where(rows < is_new.shape[0], new_slots[jnp.minimum(rows, is_new.shape[0] - 1)], capacity),
+        own[rows]), lists)
+
+    hit = is_new[:, None] & (valid & ~changed)[None] & (new_d < lists.radius[None])
+    merged = jnp.where(hit, new_d, jnp.inf)
+    lists = for_each_chunk(hit.any(0), chunk, lambda rows, ls: _merge(ls, rows, merged, new_slots), lists)
+
+    # Lists that removals left with fewer than k certain neighbours: recompute.
+    certain = jnp.isfinite(lists.sq_dist).sum(1)
+    depleted = valid & (certain < k) & jnp.isfinite(lists.radius)
+
+    def rebuild(rows: jax.Array, ls: NeighbourLists) -> NeighbourLists:
+        d = sq_dists(behaviors[rows], behaviors)
+        return _recompute(ls, rows, jnp.where(valid[None] & (rows[:, None] != jnp.arange(capacity)), d, jnp.inf))
+
+    return for_each_chunk(depleted, chunk, rebuild, lists)
+
+
+def novelty(lists: NeighbourLists, valid: jax.Array, k: int) -> jax.Array:
+    """[C] mean distance to the k nearest listed neighbours (fewer if fewer exist; 0 if none)."""
+    finite = jnp.isfinite(lists.sq_dist)
+    take = finite & (jnp.cumsum(finite, axis=1) <= k)
+    total = jnp.where(take, jnp.sqrt(jnp.where(take, lists.sq_dist, 0.0)), 0.0).sum(1)
+    return jnp.where(valid, total / jnp.maximum(take.sum(1), 1), 0.0)

@@ -1,0 +1,92 @@
+"""The task protocol: what a task gives the QD engine.
+
+A task is a bounded action box, a bounded 2D behavior box (plus the reachable
+part of it, for coverage), and a pure, vmappable rollout:
+
+    evaluate(actions[B, n], key) -> (behaviors[B, d], qualities[B], valid[B])
+
+`valid[b] = False` marks a failed rollout: it counts as an evaluation but is
+never inserted. Subclass `Task` (a frozen dataclass) and implement `evaluate`;
+override `reachable` if part of the behavior box cannot be reached, and
+`quality_range` (a class attribute, default (0, 1)) if qualities lie elsewhere:
+M-QD's model maps it to its tanh output range. A backend that can skip
+rollouts (a host callback) overrides `evaluate_masked`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Task:
+    """Base class of every task. Bounds are tuples so the task stays hashable.
+
+    Attributes:
+      action_low, action_high: per-dimension action bounds, length n.
+      behavior_low, behavior_high: the behavior box, length d.
+      quality_range: (low, high) of the qualities `evaluate` returns; a class
+        attribute, fixed per task. M-QD's model normalizes qualities with it.
+    """
+
+    quality_range: ClassVar[tuple[float, float]] = (0.0, 1.0)
+
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+    behavior_low: tuple[float, ...]
+    behavior_high: tuple[float, ...]
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.action_low)
+
+    @property
+    def behavior_dim(self) -> int:
+        return len(self.behavior_low)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Rolls out `actions[B, n]`; returns behaviors[B, d], qualities[B], valid[B]."""
+        raise NotImplementedError
+
+    def evaluate_masked(self, actions: jax.Array, key: jax.Array,
+                        mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """`evaluate` for the rows where mask[B] is set; the other rows' outputs are ignored.
+
+        The default rolls out every row (a traced, vmapped rollout costs the
+        same either way); the engine discards the unmasked rows' outputs.
+        """
+        del mask
+        return self.evaluate(actions, key)
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        """Whether each behavior `points[..., d]` is reachable (numpy, host side).
+
+        Coverage is measured over the reachable part of the behavior box only.
+        The default: the whole box.
+        """
+        return np.ones(points.shape[:-1], bool)
+
+
+def check_outputs(task: Task, name: str, batch: int) -> None:
+    """Raises ValueError unless `task.evaluate` has the protocol's output shapes and dtypes.
+
+    Checked abstractly (`jax.eval_shape`: nothing runs) on actions[batch, n].
+    """
+    n, d = task.action_dim, task.behavior_dim
+    want = f"(behaviors [{batch}, {d}] float, qualities [{batch}] float, valid [{batch}] bool)"
+    actions = jax.ShapeDtypeStruct((batch, n), jnp.float32)
+    try:
+        out = jax.eval_shape(lambda a: task.evaluate(a, jax.random.PRNGKey(0)), actions)
+    except Exception as e:  # any failure of user code is reported the same way
+        raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) failed: {e}") from e
+    shapes = [(batch, d), (batch,), (batch,)]
+    kinds = [jnp.floating, jnp.floating, jnp.bool_]
+    if not (isinstance(out, tuple) and len(out) == 3 and all(
+            o.shape == s and jnp.issubdtype(o.dtype, k) for o, s, k in zip(out, shapes, kinds, strict=True))):
+        got = jax.tree.map(lambda o: f"{o.dtype}{list(o.shape)}", out)
+        raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) must return {want}; got {got}")

@@ -1,0 +1,232 @@
+"""The KUKA LBR iiwa 14 scenes: kinematics and inverse kinematics read from the MjModel, joint trajectories
+through end-effector via-points, and rollouts on C MuJoCo.
+
+Scenes are MJCF files in `envs/assets/` (`iiwa14.xml` is the robot; a scene
+includes it and adds a table and objects). The platform's top and the table's top
+are at z = 0; the table spans x in [0.3, 0.9], y in [-0.3, 0.3]. At the start the
+end effector (site "ee", the tip of a closed gripper) points down, 0.25 m above
+the table's centre.
+
+Forward kinematics is the body chain of the MjModel (body offsets, joint axes,
+site offset), written in JAX so that inverse kinematics (damped least squares,
+a fixed number of iterations, joint limits enforced) runs for a whole batch of
+via-points inside the jitted generation; the same MjModel drives the physics, so
+there is one source of truth.
+
+Two physics backends run the same MjModel behind one interface,
+`rollout(ctrl [..., H, nu], mask [...]) -> (final qpos, end-effector path length,
+finite)`:
+
+* `CRollout` ("mujoco", for CPUs): C MuJoCo through `mujoco.rollout` (one MjData
+  per CPU thread), called from inside the jitted generation with
+  `jax.pure_callback` on the whole batch at once (`vmap_method="expand_dims"`: a
+  vmap over seeds also becomes one call). Rows outside the mask are not simulated.
+* `MjxRollout` ("mjx", for accelerators): `mjx.step` in a `lax.scan`, vmapped
+  over the batch; fully traced, so masked rows are simulated and ignored.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import functools
+import os
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx, rollout
+
+ASSETS = os.path.join(os.path.dirname(__file__), "assets")
+TABLE_LOW, TABLE_HIGH = (0.3, -0.3), (0.9, 0.3)
+# Where via-points may go: the part of the table the tool reaches pointing down (for targets near the
+# edges of the box IK stops at the nearest reachable pose).
+REACH_LOW, REACH_HIGH = (0.4, -0.3), (0.8, 0.3)
+TABLE_CENTRE = (0.6, 0.0)
+START_HEIGHT = 0.25
+IK_ITERATIONS = 30
+IK_DAMPING = 0.05
+# Pointing down, gamma = 0: the end effector's z axis is the world's -z and its x axis the world's -x
+# (the arm leaning forward over the table, flange unturned).
+_DOWN = np.diag([-1.0, 1.0, -1.0])
+
+
+@functools.cache
+def load(scene: str) -> mujoco.MjModel:
+    """The MjModel of `envs/assets/<scene>.xml` (cached: one per scene)."""
+    return mujoco.MjModel.from_xml_path(os.path.join(ASSETS, f"{scene}.xml"))
+
+
+class Kinematics:
+    """Forward and inverse kinematics of the arm, from an MjModel's body chain to site "ee"."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "ee")
+        chain, body = [], int(model.site_bodyid[site])
+        while body != 0:
+            chain.append(body)
+            body = int(model.body_parentid[body])
+        self.bodies: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, int]] = []
+        joint_ids = []
+        for b in reversed(chain):
+            rot = np.zeros(9)
+            mujoco.mju_quat2Mat(rot, model.body_quat[b])
+            axis, qadr = None, -1
+            if model.body_jntnum[b]:
+                j = int(model.body_jntadr[b])
+                if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE or np.any(model.jnt_pos[j]):
+                    raise ValueError("the arm's chain must be hinges at their bodies' origins")
+                axis, qadr = np.array(model.jnt_axis[j]), int(model.jnt_qposadr[j])
+                joint_ids.append(j)
+            self.bodies.append((np.array(model.body_pos[b]), rot.reshape(3, 3), axis, qadr))
+        self.site_pos = np.array(model.site_pos[site])
+        self.joints = [qadr for *_, qadr in self.bodies if qadr >= 0]
+        self.low = np.asarray(model.jnt_range[joint_ids, 0], np.float32)
+        self.high = np.asarray(model.jnt_range[joint_ids, 1], np.float32)
+
+    def frames(self, q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+        """q [7] -> end-effector position [3], rotation [3, 3], joint axes [7, 3] and joint origins
+        [7, 3], all in the world frame."""
+        pos, rot = jnp.zeros(3), jnp.eye(3)
+        axes, origins = [], []
+        for offset, frame, axis, qadr in self.bodies:
+            pos, rot = pos + rot @ offset, rot @ frame
+            if axis is not None:
+                axes.append(rot @ axis)
+                origins.append(pos)
+                rot = rot @ _axis_rotation(jnp.asarray(axis, jnp.float32), q[self.joints.index(qadr)])
+        return pos + rot @ self.site_pos, rot, jnp.stack(axes), jnp.stack(origins)
+
+    def forward(self, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """q [7] -> end-effector position [3] and rotation matrix [3, 3] (world frame)."""
+        return self.frames(q)[:2]
+
+    def residual_and_jacobian(self, q: jax.Array, target: jax.Array,
+                              gamma: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The residual [9]: position error, and the errors of the end effector's z and x axes against
+        pointing down rotated by gamma about the vertical (axis differences, unlike a rotation vector,
+        have no stationary point at a half-turn error); and its Jacobian [9, 7], from the joint axes
+        (turning joint i moves a point v by a_i x (v - o_i) and turns an axis u by a_i x u)."""
+        pos, rot, axes, origins = self.frames(q)
+        want = _axis_rotation(jnp.array([0.0, 0.0, 1.0]), gamma) @ _DOWN
+        r = jnp.concatenate([pos - target, rot[:, 2] - want[:, 2], rot[:, 0] - want[:, 0]])
+        jac = jnp.concatenate([jnp.cross(axes, pos - origins), jnp.cross(axes, rot[:, 2]),
+                               jnp.cross(axes, rot[:, 0])], axis=1).T
+        return r, jac
+
+    def inverse(self, q0: jax.Array, target: jax.Array, gamma: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Joint angles [7] for one pose, from q0, and the final residual [9].
+
+        Damped least squares for a fixed number of iterations within the joint
+        limits: deterministic, and an unreachable target ends at a nearby
+        reachable pose whose residual says how far it is.
+        """
+        def step(_: int, q: jax.Array) -> jax.Array:
+            r, jac = self.residual_and_jacobian(q, target, gamma)
+            dq = jnp.linalg.solve(jac.T @ jac + IK_DAMPING ** 2 * jnp.eye(jac.shape[1]), jac.T @ r)
+            return jnp.clip(q - dq, self.low, self.high)
+
+        q = jax.lax.fori_loop(0, IK_ITERATIONS, step, q0)
+        return q, self.residual_and_jacobian(q, target, gamma)[0]
+
+
+def _axis_rotation(axis: jax.Array, angle: jax.Array) -> jax.Array:
+    """Rodrigues: rotation by `angle` about the unit `axis`."""
+    k = jnp.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return jnp.eye(3) + jnp.sin(angle) * k + (1.0 - jnp.cos(angle)) * (k @ k)
+
+
+@functools.cache
+def start_pose(scene: str) -> np.ndarray:
+    """Joint angles [7] with the end effector pointing down, START_HEIGHT above the table's centre."""
+    kin = Kinematics(load(scene))
+    seed = jnp.array([0.0, 0.5, 0.0, -1.5, 0.0, 1.1, 0.0])
+    target = jnp.array([*TABLE_CENTRE, START_HEIGHT])
+    # A task may first be built while a run is being traced; JAX's tracing state is per thread, so
+    # solving on a thread of our own gives concrete values.
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        q, r = pool.submit(jax.jit(kin.inverse), seed, target, jnp.float32(0.0)).result()
+    if np.abs(np.asarray(r)).max() > 1e-4:
+        raise RuntimeError(f"the start pose of {scene} is not reachable (residual {np.asarray(r)})")
+    return np.asarray(q, np.float64)
+
+
+def joint_trajectory(q_start: jax.Array, q_via: jax.Array, durations: jax.Array, horizon: int) -> jax.Array:
+    """Joint targets [horizon, 7]: linear in joint space from q_start through q_via [V, 7].
+
+    Via-point i is reached `durations[:i+1].sum()` steps in (durations may be
+    fractional); the last is held to the horizon.
+    """
+    ends = jnp.cumsum(durations)
+    starts = ends - durations
+    t = jnp.arange(1, horizon + 1, dtype=jnp.float32)[:, None]
+    progress = jnp.clip((t - starts) / jnp.maximum(durations, 1e-6), 0.0, 1.0)  # [H, V]
+    steps = jnp.diff(jnp.concatenate([q_start[None], q_via]), axis=0)  # [V, 7]
+    return q_start + progress @ steps
+
+
+class CRollout:
+    """C MuJoCo rollouts of a batch of control sequences from the scene's start state."""
+
+    def __init__(self, scene: str, q_start: np.ndarray) -> None:
+        self.model = load(scene)
+        data = _start_data(self.model, q_start)
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        self.initial_state = np.zeros(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, data, self.initial_state, spec)
+        self.ee_start = np.array(data.sensordata[:3])  # the "ee_pos" framepos sensor
+        self.datas = [mujoco.MjData(self.model) for _ in range(os.cpu_count() or 1)]
+
+    def __call__(self, ctrl: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """ctrl [..., H, nu], mask [...] -> final qpos [..., nq], ee path length [...], finite [...]."""
+        lead = ctrl.shape[:-2]
+        ctrl = np.asarray(ctrl, np.float64).reshape(-1, *ctrl.shape[-2:])
+        rows = np.flatnonzero(np.broadcast_to(np.asarray(mask), lead).reshape(-1))
+        nq = self.model.nq
+        qpos = np.zeros((ctrl.shape[0], nq), np.float32)
+        path = np.zeros(ctrl.shape[0], np.float32)
+        finite = np.zeros(ctrl.shape[0], bool)
+        if len(rows):
+            state, sensors = rollout.rollout(self.model, self.datas, self.initial_state[None], ctrl[rows])
+            qpos[rows] = state[:, -1, 1:1 + nq]
+            start = np.broadcast_to(self.ee_start, (len(rows), 1, 3))
+            ee = np.concatenate([start, sensors[:, :, :3]], axis=1)
+            path[rows] = np.linalg.norm(np.diff(ee, axis=1), axis=-1).sum(axis=1)
+            finite[rows] = np.isfinite(state[:, -1]).all(axis=1)
+        return qpos.reshape(*lead, nq), path.reshape(lead), finite.reshape(lead)
+
+
+def _start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
+    """MjData at the start: the arm at q_start and holding it, everything else as in the MJCF."""
+    data = mujoco.MjData(model)
+    data.qpos[:7] = q_start
+    data.ctrl[:] = q_start
+    mujoco.mj_forward(model, data)
+    return data
+
+
+class MjxRollout:
+    """MJX rollouts of a batch of control sequences from the scene's start state (traced)."""
+
+    def __init__(self, scene: str, q_start: np.ndarray) -> None:
+        model = load(scene)
+        data = _start_data(model, q_start)
+        self.model = mjx.put_model(model)
+        self.data = mjx.put_data(model, data)
+        self.ee_start = np.array(data.sensordata[:3], np.float32)
+
+    def __call__(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """ctrl [B, H, nu] -> final qpos [B, nq], ee path length [B], finite [B]; `mask` is not needed."""
+        del mask
+
+        def one(controls: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+            def step(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, jax.Array]:
+                d = mjx.step(self.model, d.replace(ctrl=u))
+                return d, d.sensordata[:3]  # the "ee_pos" framepos sensor
+
+            final, ee = jax.lax.scan(step, self.data, controls)
+            ee = jnp.concatenate([jnp.asarray(self.ee_start)[None], ee])
+            path = jnp.linalg.norm(jnp.diff(ee, axis=0), axis=-1).sum()
+            return final.qpos.astype(jnp.float32), path.astype(jnp.float32), jnp.isfinite(final.qpos).all()
+
+        return jax.vmap(one)(ctrl)
