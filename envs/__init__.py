@@ -58,5 +58,12 @@ def _register_builtin() -> None:
     register("push_cube", push("push_cube", 0.025))
     register("push_sphere", push("push_sphere", 0.03))
 
+    def place(backend: str = "auto") -> Task:
+        from envs import place
+
+        return place.make(backend=backend)
+
+    register("place", place)
+
 
 _register_builtin()

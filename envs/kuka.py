@@ -14,8 +14,8 @@ via-points inside the jitted generation; the same MjModel drives the physics, so
 there is one source of truth.
 
 Two physics backends run the same MjModel behind one interface,
-`rollout(ctrl [..., H, nu], mask [...]) -> (final qpos, end-effector path length,
-finite)`:
+`rollout(ctrl [..., H, nu (+ neq)], mask [...]) -> (final qpos, sensor readings
+at every step, finite)`:
 
 * `CRollout` ("mujoco", for CPUs): C MuJoCo through `mujoco.rollout` (one MjData
   per CPU thread), called from inside the jitted generation with
@@ -166,67 +166,80 @@ def joint_trajectory(q_start: jax.Array, q_via: jax.Array, durations: jax.Array,
 
 
 class CRollout:
-    """C MuJoCo rollouts of a batch of control sequences from the scene's start state."""
+    """C MuJoCo rollouts of a batch of control sequences from the scene's start state.
+
+    A control row is the actuators' targets, followed, when the scene has
+    equality constraints, by their on/off switches (mjSTATE_EQ_ACTIVE).
+    """
 
     def __init__(self, scene: str, q_start: np.ndarray) -> None:
         self.model = load(scene)
-        data = _start_data(self.model, q_start)
+        data = start_data(self.model, q_start)
         spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self.initial_state = np.zeros(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, data, self.initial_state, spec)
-        self.ee_start = np.array(data.sensordata[:3])  # the "ee_pos" framepos sensor
+        self.sensors_start = np.array(data.sensordata, np.float32)
+        self.control_spec = mujoco.mjtState.mjSTATE_CTRL | (mujoco.mjtState.mjSTATE_EQ_ACTIVE if self.model.neq else 0)
         self.datas = [mujoco.MjData(self.model) for _ in range(os.cpu_count() or 1)]
 
     def __call__(self, ctrl: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """ctrl [..., H, nu], mask [...] -> final qpos [..., nq], ee path length [...], finite [...]."""
-        lead = ctrl.shape[:-2]
+        """ctrl [..., H, nu (+ neq)], mask [...] -> final qpos [..., nq], sensors [..., H, ns], finite [...]."""
+        lead, horizon = ctrl.shape[:-2], ctrl.shape[-2]
         ctrl = np.asarray(ctrl, np.float64).reshape(-1, *ctrl.shape[-2:])
         rows = np.flatnonzero(np.broadcast_to(np.asarray(mask), lead).reshape(-1))
-        nq = self.model.nq
+        nq, ns = self.model.nq, self.model.nsensordata
         qpos = np.zeros((ctrl.shape[0], nq), np.float32)
-        path = np.zeros(ctrl.shape[0], np.float32)
+        sensors = np.zeros((ctrl.shape[0], horizon, ns), np.float32)
         finite = np.zeros(ctrl.shape[0], bool)
         if len(rows):
-            state, sensors = rollout.rollout(self.model, self.datas, self.initial_state[None], ctrl[rows])
+            state, sensors[rows] = rollout.rollout(self.model, self.datas, self.initial_state[None], ctrl[rows],
+                                                   control_spec=int(self.control_spec))
             qpos[rows] = state[:, -1, 1:1 + nq]
-            start = np.broadcast_to(self.ee_start, (len(rows), 1, 3))
-            ee = np.concatenate([start, sensors[:, :, :3]], axis=1)
-            path[rows] = np.linalg.norm(np.diff(ee, axis=1), axis=-1).sum(axis=1)
             finite[rows] = np.isfinite(state[:, -1]).all(axis=1)
-        return qpos.reshape(*lead, nq), path.reshape(lead), finite.reshape(lead)
+        return qpos.reshape(*lead, nq), sensors.reshape(*lead, horizon, ns), finite.reshape(lead)
 
 
-def _start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
-    """MjData at the start: the arm at q_start and holding it, everything else as in the MJCF."""
+def start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
+    """MjData at the start: the arm at q_start and holding it, everything else as in the MJCF; a scene
+    with a "hold" weld starts with its object held under the gripper, as the weld's relpose says."""
     data = mujoco.MjData(model)
     data.qpos[:7] = q_start
     data.ctrl[:] = q_start
     mujoco.mj_forward(model, data)
+    hold = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, "hold")
+    if hold >= 0:
+        tool, obj = model.eq_obj1id[hold], model.eq_obj2id[hold]
+        adr = model.jnt_qposadr[model.body_jntadr[obj]]
+        rel_pos, rel_quat = model.eq_data[hold, 3:6], model.eq_data[hold, 6:10]
+        data.qpos[adr:adr + 3] = data.xpos[tool] + data.xmat[tool].reshape(3, 3) @ rel_pos
+        mujoco.mju_mulQuat(data.qpos[adr + 3:adr + 7], data.xquat[tool], rel_quat)
+        mujoco.mj_forward(model, data)
     return data
 
 
 class MjxRollout:
-    """MJX rollouts of a batch of control sequences from the scene's start state (traced)."""
+    """MJX rollouts of a batch of control sequences from the scene's start state (traced; same controls)."""
 
     def __init__(self, scene: str, q_start: np.ndarray) -> None:
         model = load(scene)
-        data = _start_data(model, q_start)
+        data = start_data(model, q_start)
+        self.nu = model.nu
         self.model = mjx.put_model(model)
         self.data = mjx.put_data(model, data)
-        self.ee_start = np.array(data.sensordata[:3], np.float32)
+        self.sensors_start = np.array(data.sensordata, np.float32)
 
     def __call__(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """ctrl [B, H, nu] -> final qpos [B, nq], ee path length [B], finite [B]; `mask` is not needed."""
+        """ctrl [B, H, nu (+ neq)] -> final qpos [B, nq], sensors [B, H, ns], finite [B]; every row runs."""
         del mask
 
         def one(controls: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
             def step(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, jax.Array]:
-                d = mjx.step(self.model, d.replace(ctrl=u))
-                return d, d.sensordata[:3]  # the "ee_pos" framepos sensor
+                if u.shape[0] > self.nu:
+                    d = d.replace(eq_active=u[self.nu:] > 0.5)
+                d = mjx.step(self.model, d.replace(ctrl=u[:self.nu]))
+                return d, d.sensordata
 
-            final, ee = jax.lax.scan(step, self.data, controls)
-            ee = jnp.concatenate([jnp.asarray(self.ee_start)[None], ee])
-            path = jnp.linalg.norm(jnp.diff(ee, axis=0), axis=-1).sum()
-            return final.qpos.astype(jnp.float32), path.astype(jnp.float32), jnp.isfinite(final.qpos).all()
+            final, sensors = jax.lax.scan(step, self.data, controls)
+            return final.qpos.astype(jnp.float32), sensors.astype(jnp.float32), jnp.isfinite(final.qpos).all()
 
         return jax.vmap(one)(ctrl)

@@ -48,7 +48,7 @@ def main() -> None:
         if len(d):
             lines.append(f"| {name} | {len(d)} | {np.median(d):.4f} | {np.quantile(d, 0.9):.4f} | {d.max():.4f} "
                          f"| {np.mean(d < 0.01):.3f} |")
-    lines += ["", f"End-effector path length, largest difference: {np.abs(q_c - q_x)[both].max():.4f} m."]
+    lines += ["", f"Quality, largest difference: {np.abs(q_c - q_x)[both].max():.4f}."]
     report.write(lines, args.out)
 
 

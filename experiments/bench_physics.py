@@ -60,10 +60,11 @@ def main() -> None:
     pop, horizon = args.population, c_task.horizon
     steps = pop * horizon
     a = actions(pop)
-    ctrl = np.asarray(jax.jit(c_task.controls)(a), np.float64)
-    c = c_task._rollout  # the backend's MjModel, start state and per-thread MjData
+    ctrl = np.asarray(jax.jit(c_task.rollout_controls)(a), np.float64)
+    c = c_task._rollout  # the backend's MjModel, start state, control layout and per-thread MjData
     rows: list[tuple[str, int, float, float]] = []
-    raw_s, _ = _time(lambda: rollout.rollout(c.model, c.datas, c.initial_state[None], ctrl), args.repeats)
+    raw_s, _ = _time(lambda: rollout.rollout(c.model, c.datas, c.initial_state[None], ctrl,
+                                             control_spec=int(c.control_spec)), args.repeats)
     rows.append(("raw mujoco.rollout (controls given)", pop, raw_s, 0.0))
     evaluate = jax.jit(c_task.evaluate)
     c_s, c_compile = _time(lambda: evaluate(a, None), args.repeats)

@@ -55,7 +55,7 @@ def test_physics_sanity(cube):
     assert np.all(np.asarray(valid)) and np.all(np.asarray(q) < 0)
 
 
-@pytest.mark.parametrize("task", ["push_cube", "push_sphere"])
+@pytest.mark.parametrize("task", ["push_cube", "push_sphere", "place"])
 def test_run_mqd_on_a_robot_task_inserts_skills_and_grows_coverage(task):
     cfg = Config(task=task, algorithm="qd", population_size=16, max_generations=4, capacity=128,
                  archive_capacity=64)
@@ -77,6 +77,7 @@ def test_a_vmapped_run_makes_one_rollout_call_per_generation():
         calls.append(ctrl.shape)
         return inner(ctrl, mask)
 
+    counting.sensors_start = inner.sensors_start
     object.__setattr__(task, "_rollout", counting)
     envs.register("push_count_test", lambda: task)
     cfg = Config(task="push_count_test", population_size=8, max_generations=2, capacity=64, archive_capacity=16)
@@ -112,3 +113,29 @@ def test_the_ik_jacobian_is_the_residuals_derivative():
         _, jac = kin.residual_and_jacobian(q, target, gamma)
         brute = jax.jacfwd(lambda x: kin.residual_and_jacobian(x, target, gamma)[0])(q)
         np.testing.assert_allclose(jac, brute, atol=1e-5)
+
+
+def test_a_released_cube_comes_to_rest_on_the_surface_below():
+    from envs import place
+
+    task = envs.make("place", backend="mujoco")
+
+    def via(x, y, z):
+        return [x, y, z, 0.0, 100.0]
+
+    actions = jnp.array([via(0.6, 0.0, 0.25) * 5,  # over the table (top at 0)
+                         via(0.7, -0.1, 0.3) * 4 + via(0.7, -0.15, 0.25),  # over the high shelf (top at 0.15)
+                         via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.15, 0.2)], jnp.float32)  # the low shelf (0.08)
+    ctrl = task.rollout_controls(actions)
+    qpos, sensors, finite = task._rollout(np.asarray(ctrl), np.ones(3, bool))
+    assert np.all(finite)
+    np.testing.assert_allclose(qpos[:, 9], [0.025, 0.175, 0.105], atol=0.003)  # cube centre 2.5 cm above each top
+    release = np.asarray(task.release_step(task.via_points(actions)[2]))
+    held = sensors[np.arange(3), release - 1, 3:6]  # the cube while still held, just before release
+    # The position actuators trail a moving target: up to 1.5 cm behind it when it arrives.
+    np.testing.assert_allclose(held[:, :2], [[0.6, 0.0], [0.7, -0.15], [0.5, 0.15]], atol=0.02)
+    # The quality is minus the drop from there to rest.
+    b, q, valid = jax.jit(task.evaluate)(actions, None)
+    np.testing.assert_allclose(q, -(held[:, 2] - qpos[:, 9]), atol=1e-4)
+    np.testing.assert_allclose(b, qpos[:, 7:9], atol=1e-6)
+    assert place.VIA_POINTS == 5 and np.all(np.asarray(valid))

@@ -1,0 +1,108 @@
+"""What the KUKA tasks share: via-point actions through IK, the physics backend, and its rollouts.
+
+A task's action is a sequence of via-points; a subclass says how an action
+row becomes via-points (`via_points`) and what behaviors and qualities the
+rollouts give (`outcome`). Every rollout starts from the scene's start state
+(arm pointing down above the table's centre), follows the joint trajectory
+through the via-points, holds the last one for `settle` steps, and can switch
+the scene's equality constraints off at a given step (Place's release).
+
+`backend`: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX, accelerators) or "auto" (the
+default: "mujoco" when `jax.default_backend()` is "cpu", else "mjx");
+`envs.make(name, backend=...)` and `Config.physics_backend` set it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from envs import kuka
+from mqd_jax.task import Task
+
+BACKENDS = ("auto", "mujoco", "mjx")
+SETTLE = 100
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Manipulation(Task):
+    scene: str = "push_cube"
+    backend: str = "auto"
+    horizon: int = 400  # steps of 4 ms
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend={self.backend!r} is invalid: expected one of {BACKENDS}")
+        backend = self.backend
+        if backend == "auto":
+            backend = "mujoco" if jax.default_backend() == "cpu" else "mjx"
+        q_start = kuka.start_pose(self.scene)
+        object.__setattr__(self, "physics", backend)
+        object.__setattr__(self, "_kinematics", kuka.Kinematics(kuka.load(self.scene)))
+        object.__setattr__(self, "_q_start", q_start)
+        rollout = kuka.CRollout if backend == "mujoco" else kuka.MjxRollout
+        object.__setattr__(self, "_rollout", rollout(self.scene, q_start))
+
+    def via_points(self, actions: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """actions [B, n] -> targets [B, V, 3], gammas [B, V], durations [B, V] (steps)."""
+        raise NotImplementedError
+
+    def outcome(self, qpos: jax.Array, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Final qpos [B, nq], sensors [B, H, ns] and durations [B, V] -> behaviors [B, 2], qualities [B]."""
+        raise NotImplementedError
+
+    def controls(self, actions: jax.Array) -> jax.Array:
+        """actions [B, n] -> joint targets [B, horizon, 7] (IK through the via-points)."""
+        targets, gammas, durations = self.via_points(actions)
+        q_start = jnp.asarray(self._q_start, jnp.float32)
+
+        def one(target: jax.Array, gamma: jax.Array, duration: jax.Array) -> jax.Array:
+            def solve(q: jax.Array, pose: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+                q, _ = self._kinematics.inverse(q, *pose)
+                return q, q
+
+            _, q_via = jax.lax.scan(solve, q_start, (target, gamma))
+            return kuka.joint_trajectory(q_start, q_via, duration, self.horizon)
+
+        return jax.vmap(one)(targets, gammas, durations)
+
+    def release_switch(self, durations: jax.Array) -> jax.Array | None:
+        """[B, horizon, neq] on/off switches of the scene's equality constraints, or None if it has none."""
+        return None
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        return self.evaluate_masked(actions, key, jnp.ones(actions.shape[0], bool))
+
+    def rollout_controls(self, actions: jax.Array) -> jax.Array:
+        """actions [B, n] -> what the backends take: joint targets and, for a scene with equality
+        constraints, their switches, [B, horizon, nu (+ neq)]."""
+        ctrl = self.controls(actions)
+        switch = self.release_switch(self.via_points(actions)[2])
+        return ctrl if switch is None else jnp.concatenate([ctrl, switch], axis=-1)
+
+    def evaluate_masked(self, actions: jax.Array, key: jax.Array,
+                        mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        ctrl = self.rollout_controls(actions)
+        durations = self.via_points(actions)[2]
+        if self.physics == "mjx":
+            qpos, sensors, finite = self._rollout(ctrl, mask)
+        else:
+            model = kuka.load(self.scene)
+            batch = actions.shape[0]
+            shapes = (jax.ShapeDtypeStruct((batch, model.nq), jnp.float32),
+                      jax.ShapeDtypeStruct((batch, self.horizon, model.nsensordata), jnp.float32),
+                      jax.ShapeDtypeStruct((batch,), jnp.bool_))
+            qpos, sensors, finite = jax.pure_callback(self._rollout, shapes, ctrl, mask, vmap_method="expand_dims")
+        behaviors, qualities = self.outcome(qpos, sensors, durations)
+        obj = qpos[:, 7:10]
+        low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
+        on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
+        return behaviors, qualities, finite & on_table
+
+    def ee_path_length(self, sensors: jax.Array) -> jax.Array:
+        """[B] distance travelled by the end effector (the scene's first sensor, "ee_pos")."""
+        start = jnp.broadcast_to(jnp.asarray(self._rollout.sensors_start[:3]), (sensors.shape[0], 1, 3))
+        ee = jnp.concatenate([start, sensors[:, :, :3]], axis=1)
+        return jnp.linalg.norm(jnp.diff(ee, axis=1), axis=-1).sum(axis=1)
