@@ -16,6 +16,9 @@ candidate, and falls back to an exact O(C) search when all M were replaced.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -165,22 +168,42 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     Skills fill a prefix of the arrays, so the work is done on the smallest
     prefix of C / 2^j slots (at least `min_prefix`) that can hold every skill
     after this generation: its cost follows the repertoire's size, not C.
-    See `insert_dense` for the arguments.
+    Under `jax.vmap` (seeds, hyperparameters) the batch's insertions run one
+    after another: batched, the size-dependent branches and loops would all run
+    for every member. See `insert_dense` for the arguments.
     """
-    capacity, pop = rep.capacity, behaviors.shape[0]
-    sizes = sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
+    def run(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
+            t_dist: jax.Array) -> tuple[Repertoire, Insertion]:
+        capacity, pop = rep.capacity, behaviors.shape[0]
+        sizes = sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
 
-    def branch(size: int):
-        def run(rep: Repertoire) -> tuple[Repertoire, Insertion]:
-            part, ins = insert_dense(_prefix(rep, size, capacity), actions, behaviors, qualities, ok, t_dist,
-                                     k, num_near, chunk)
-            removed = jnp.zeros(capacity, bool).at[:size].set(ins.removed)
-            return _write_prefix(rep, part), ins.replace(removed=removed)
-        return run
+        def branch(size: int) -> Callable[[Repertoire], tuple[Repertoire, Insertion]]:
+            def on_prefix(rep: Repertoire) -> tuple[Repertoire, Insertion]:
+                part, ins = insert_dense(_prefix(rep, size, capacity), actions, behaviors, qualities, ok, t_dist,
+                                         k, num_near, chunk)
+                removed = jnp.zeros(capacity, bool).at[:size].set(ins.removed)
+                return _write_prefix(rep, part), ins.replace(removed=removed)
+            return on_prefix
 
-    need = rep.count + pop
-    index = jnp.searchsorted(jnp.asarray(sizes), jnp.minimum(need, capacity))
-    return jax.lax.switch(index, [branch(s) for s in sizes], rep)
+        index = jnp.searchsorted(jnp.asarray(sizes), jnp.minimum(rep.count + pop, capacity))
+        return jax.lax.switch(index, [branch(s) for s in sizes], rep)
+
+    return _in_turn_under_vmap(run)(rep, actions, behaviors, qualities, ok, t_dist)
+
+
+def _in_turn_under_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """`fn`, whose vmap runs the batch's members one after another (`lax.map`) instead of batching its ops."""
+    wrapped = jax.custom_batching.custom_vmap(fn)
+
+    @wrapped.def_vmap
+    def rule(axis_size: int, in_batched: Any, *args: Any) -> tuple[Any, Any]:
+        args = jax.tree.map(lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
+                            args, tuple(in_batched))
+        # `wrapped` again, so that an outer vmap (seeds x hyperparameters) also runs in turn.
+        out = jax.lax.map(lambda a: wrapped(*a), args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return wrapped
 
 
 def insert_dense(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
