@@ -55,7 +55,9 @@ class Manipulation(Task):
 
     def controls(self, actions: jax.Array) -> jax.Array:
         """actions [B, n] -> joint targets [B, horizon, 7] (IK through the via-points)."""
-        targets, gammas, durations = self.via_points(actions)
+        return self._joint_targets(*self.via_points(actions))
+
+    def _joint_targets(self, targets: jax.Array, gammas: jax.Array, durations: jax.Array) -> jax.Array:
         q_start = jnp.asarray(self._q_start, jnp.float32)
 
         def one(target: jax.Array, gamma: jax.Array, duration: jax.Array) -> jax.Array:
@@ -78,14 +80,17 @@ class Manipulation(Task):
     def rollout_controls(self, actions: jax.Array) -> jax.Array:
         """actions [B, n] -> what the backends take: joint targets and, for a scene with equality
         constraints, their switches, [B, horizon, nu (+ neq)]."""
-        ctrl = self.controls(actions)
-        switch = self.release_switch(self.via_points(actions)[2])
+        return self._rollout_controls(*self.via_points(actions))
+
+    def _rollout_controls(self, targets: jax.Array, gammas: jax.Array, durations: jax.Array) -> jax.Array:
+        ctrl = self._joint_targets(targets, gammas, durations)
+        switch = self.release_switch(durations)
         return ctrl if switch is None else jnp.concatenate([ctrl, switch], axis=-1)
 
     def evaluate_masked(self, actions: jax.Array, key: jax.Array,
                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        ctrl = self.rollout_controls(actions)
-        durations = self.via_points(actions)[2]
+        targets, gammas, durations = self.via_points(actions)
+        ctrl = self._rollout_controls(targets, gammas, durations)
         if self.physics == "mjx":
             qpos, sensors, finite = self._rollout(ctrl, mask)
         else:
