@@ -19,10 +19,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 
 import jax
 import numpy as np
+import report
 
 import envs
 from mqd_jax import Config, Task, adapt, run_mqd
@@ -69,27 +69,19 @@ def main() -> None:
         json.dump(results, f, indent=1)
     pm = lambda x: f"{np.mean(x):.4f} +- {np.std(x):.4f}"  # noqa: E731
     lines = [f"M-QD repertoires (paper 2D settings, {args.generations} generations), {args.repertoires} repertoires "
-             f"x {args.goals} reachable goals per task; step size 0.1, at most 10 steps; {platform.machine()}, "
-             f"{os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}.", "",
+             f"x {args.goals} reachable goals per task; step size 0.1, at most 10 steps; {report.machine()}.", "",
              "| task | method | mean error | mean steps (= rollouts) | goals within t_dist |", "|---|---|---|---|---|"]
     for name, by_method in results.items():
         for method, r in by_method.items():
             lines.append(f"| {name} | {method} | {pm(r['error'])} | {np.mean(r['steps']):.2f} "
                          f"| {np.mean(r['reached']):.3f} |")
-    with open(os.path.join(args.out, "adaptation.md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    report.write(lines, os.path.join(args.out, "adaptation.md"))
     _plot(results, os.path.join(args.out, "adaptation.png"))
 
 
 def _plot(results: dict, path: str) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install -e .[plot]): no plot written")
+    plt = report.pyplot()
+    if plt is None:
         return
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     width = 0.8 / len(METHODS)

@@ -13,14 +13,13 @@ Stages timed alone do not add up exactly to the fused generation.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import time
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import report
 
 from mqd_jax import Config, coverage, init, model, repertoire
 from mqd_jax.run import _NUM_NEAR, ask, generation, get_task, run_generations
@@ -63,8 +62,7 @@ def main() -> None:
         stages["model training (500 Adam steps)"] = jax.jit(
             lambda s: model.train(s.model, key, s.repertoire, cfg, task, params.learning_rate))
     print(f"{args.task}, {args.algorithm}, repertoire of {int(state.repertoire.count)} skills after {args.grow} "
-          f"generations (capacity {cfg.capacity}); {platform.machine()}, {os.cpu_count()} CPU cores, "
-          f"jax {jax.__version__} on {jax.default_backend()}; median of {args.repeats} calls.\n")
+          f"generations (capacity {cfg.capacity}); {report.machine()}; median of {args.repeats} calls.\n")
     print("| stage | ms |\n|---|---|")
     for name, fn in stages.items():
         print(f"| {name} | {_median_ms(lambda f=fn: f(state), args.repeats):.3f} |", flush=True)

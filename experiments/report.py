@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import os
 import platform
+from typing import Any
 
 import jax
+import numpy as np
 
 
 def machine() -> str:
@@ -21,3 +23,22 @@ def write(lines: list[str], path: str) -> None:
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     with open(path, "w") as f:
         f.write(table + "\n")
+
+
+def coverage_at(num_evaluations: np.ndarray, coverage: np.ndarray, evaluations: float) -> np.ndarray:
+    """[S] each run's coverage once `evaluations` evaluations were spent, from per-generation
+    num_evaluations [S, G] and coverage [S, G] (linear between generations)."""
+    return np.array([np.interp(evaluations, e, c) for e, c in zip(num_evaluations, coverage, strict=True)])
+
+
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend, or None (with a message) when matplotlib is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not installed (pip install -e .[plot]): no figure written")
+        return None
+    return plt

@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 
 import jax
 import numpy as np
+import report
 
 from envs import kuka
 from mqd_jax import Config, run_mqd
@@ -32,8 +32,7 @@ def main() -> None:
     args = parser.parse_args()
     key = jax.random.PRNGKey(args.seed)
     lines = [f"{args.task}, Table II robot settings, {args.generations} generations, seed {args.seed}; "
-             f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}, "
-             "C MuJoCo backend.", "",
+             f"{report.machine()}, C MuJoCo backend.", "",
              "| algorithm | coverage | mean quality | skills | evaluations | compile s | run s |",
              "|---|---|---|---|---|---|---|"]
     behaviors = {}
@@ -50,23 +49,15 @@ def main() -> None:
         lines.append(f"| {alg} | {float(m['coverage'][-1]):.3f} | {float(m['mean_quality'][-1]):.3f} | {n} "
                      f"| {int(m['num_evaluations'][-1])} | {compile_s:.1f} | {run_s:.1f} |")
         print(lines[-1], flush=True)
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, f"robot_{args.task}.md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    report.write(lines, os.path.join(args.out, f"robot_{args.task}.md"))
     _plot(behaviors, os.path.join(args.out, f"robot_{args.task}.png"), args.task)
 
 
 def _plot(behaviors: dict[str, np.ndarray], path: str, task: str) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        from matplotlib.patches import Rectangle
-    except ImportError:
-        print("matplotlib is not installed (pip install -e .[plot]): no plot written")
+    plt = report.pyplot()
+    if plt is None:
         return
+    Rectangle = plt.Rectangle
     fig, axes = plt.subplots(1, len(behaviors), figsize=(5 * len(behaviors), 5))
     (tx0, ty0), (tx1, ty1) = kuka.TABLE_LOW, kuka.TABLE_HIGH
     (rx0, ry0), (rx1, ry1) = kuka.REACH_LOW, kuka.REACH_HIGH

@@ -92,13 +92,8 @@ def main() -> None:
 
 
 def _figure(task: str, curves: dict, shown: dict, path: str) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install -e .[plot]): no figure written")
+    plt = report.pyplot()
+    if plt is None:
         return
     import envs
 

@@ -15,13 +15,12 @@ with its ratio to QD's.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 from typing import Any
 
 import jax
 import numpy as np
+import report
 
 from mqd_jax import Config, run_mqd
 
@@ -43,11 +42,6 @@ def _runs(cfg: Config, seeds: int) -> tuple[dict[str, np.ndarray], float]:
     return {k: np.stack([np.asarray(m[k]) for m in out]) for k in out[0]}, ms
 
 
-def _coverage_at(m: dict[str, np.ndarray], evaluations: float) -> np.ndarray:
-    """[seeds] coverage once `evaluations` evaluations were spent (linear between generations)."""
-    return np.array([np.interp(evaluations, e, c) for e, c in zip(m["num_evaluations"], m["coverage"], strict=True)])
-
-
 def _evaluations_to_reach(m: dict[str, np.ndarray], coverage: float) -> list[int]:
     """Evaluations spent when each seed first reached `coverage` (seeds that never did are left out)."""
     return [int(e[np.argmax(c >= coverage)]) for e, c in zip(m["num_evaluations"], m["coverage"], strict=True)
@@ -67,7 +61,7 @@ def main() -> None:
     parser.add_argument("--out", default="results/table_2d.md")
     args = parser.parse_args()
     lines = [f"Paper 2D settings (Table II), {args.generations} generations, {args.seeds} seeds; "
-             f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}.",
+             f"{report.machine()}.",
              "", "| task | variant | coverage | mean quality | evaluations | evaluations to QD's final coverage "
              "| QD's coverage at these evaluations | repertoire size | ms / generation | time vs QD |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -86,16 +80,13 @@ def main() -> None:
                 target = qd["coverage"][:, -1].mean()
                 hits = _evaluations_to_reach(m, target)
                 reach = f"{np.mean(hits):.0f} ({len(hits)}/{args.seeds} seeds)" if hits else f"never (0/{args.seeds})"
-                qd_at = _pm(_coverage_at(qd, spent.mean()))
+                qd_at = _pm(report.coverage_at(qd["num_evaluations"], qd["coverage"], spent.mean()))
             ratio = f"{ms / results['qd'][1]:.2f}x" if "qd" in results else ""
             lines.append(f"| {task} | {name} | {_pm(m['coverage'][:, -1])} | {_pm(m['mean_quality'][:, -1])} "
                          f"| {spent.mean():.0f} | {reach} | {qd_at} | {m['repertoire_size'][:, -1].mean():.0f} "
                          f"| {ms:.2f} | {ratio} |")
             print(lines[-1], flush=True)
-    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    with open(args.out, "w") as f:
-        f.write("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    report.write(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -14,20 +14,19 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import os
-import platform
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import report
 
 from mqd_jax import Config, run_mqd
 
 
 def _coverage_at(runs: list[dict[str, jax.Array]], evaluations: float) -> float:
     """Mean over runs of the coverage once `evaluations` evaluations were spent."""
-    return float(np.mean([np.interp(evaluations, np.asarray(m["num_evaluations"]), np.asarray(m["coverage"]))
-                          for m in runs]))
+    stack = lambda name: np.stack([np.asarray(m[name]) for m in runs])  # noqa: E731
+    return float(report.coverage_at(stack("num_evaluations"), stack("coverage"), evaluations).mean())
 
 
 def main() -> None:
@@ -48,7 +47,7 @@ def main() -> None:
     qd_cfg, qd_run = compiled["qd"]
     qd = [qd_run(k, qd_cfg.params())[1] for k in keys]
     lines = [f"{args.task}, paper 2D settings, {args.generations} generations, {args.seeds} seeds (means); "
-             f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}. "
+             f"{report.machine()}. "
              f"QD: final coverage {np.mean([float(m['coverage'][-1]) for m in qd]):.3f} after "
              f"{int(qd[0]['num_evaluations'][-1])} evaluations.", "",
              "| t_nov | t_qua | M-QD coverage | M-QD evaluations | QD coverage at these evaluations "
@@ -61,10 +60,7 @@ def main() -> None:
         lines.append(f"| {t_nov} | {t_qua} | {np.mean([float(m['coverage'][-1]) for m in runs]):.3f} | {spent:.0f} "
                      f"| {_coverage_at(qd, spent):.3f} | {_coverage_at(runs, 1e4):.3f} | {_coverage_at(qd, 1e4):.3f} |")
         print(lines[-1], flush=True)
-    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-    with open(out, "w") as f:
-        f.write("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    report.write(lines, out)
 
 
 if __name__ == "__main__":

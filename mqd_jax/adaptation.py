@@ -97,21 +97,21 @@ def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: 
     low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
 
     def step(j: jax.Array, carry: tuple) -> tuple:
-        a, b, best, steps, active = carry
+        a, b, (best_a, best_b, best_error), steps, active = carry
         active = active & (error(b) >= params.t_dist)
         direction = jnp.einsum("gnd,gd->gn", jnp.linalg.pinv(jacobian(a, b)), goals - b)
         new_a = jnp.clip(a + params.adaptation_step_size * direction, low, high)
         new_b, _, valid = task.evaluate_masked(new_a, jax.random.fold_in(key, j), active)
         ok = active & valid & jnp.isfinite(new_b).all(axis=1)
         a, b = jnp.where(ok[:, None], new_a, a), jnp.where(ok[:, None], new_b, b)
-        better = ok & (error(b) < best.errors)
-        best = jax.tree.map(lambda new, old: jnp.where(better.reshape((-1,) + (1,) * (old.ndim - 1)), new, old),
-                            Adapted(a, b, error(b), best.steps, best.evaluations), best)
+        better = ok & (error(b) < best_error)
+        best = (jnp.where(better[:, None], a, best_a), jnp.where(better[:, None], b, best_b),
+                jnp.where(better, error(b), best_error))
         return a, b, best, steps + active, ok
 
-    init = (a0, b0, Adapted(a0, b0, error(b0), zeros, zeros), zeros, jnp.ones(goals.shape[0], bool))
+    init = (a0, b0, (a0, b0, error(b0)), zeros, jnp.ones(goals.shape[0], bool))
     _, _, best, steps, _ = jax.lax.fori_loop(0, cfg.adaptation_steps, step, init)
-    return best.replace(steps=steps, evaluations=steps)
+    return Adapted(*best, steps=steps, evaluations=steps)
 
 
 def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str,
