@@ -14,6 +14,8 @@ from typing import Any
 from mqd_jax.task import Task
 
 _FACTORIES: dict[str, Callable[..., Task]] = {}
+# The KUKA tasks: the paper's robotic column of Table II, 10 seeds.
+ROBOT_TASKS = ("push_cube", "push_sphere", "place")
 
 
 def register(name: str, factory: Callable[[], Task]) -> None:

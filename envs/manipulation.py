@@ -18,9 +18,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import mujoco
 
 from envs import kuka
-from mqd_jax.task import Task
+from mqd_jax.task import Region, Task
 
 BACKENDS = ("auto", "mujoco", "mjx")
 SETTLE = 100
@@ -105,6 +106,24 @@ class Manipulation(Task):
         low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
         return behaviors, qualities, finite & on_table
+
+    def layout(self) -> tuple[Region, ...]:
+        """The table and any shelves (boxes of the scene named table*/shelf*, from its MJCF), the
+        via-points' reach and the object's start, seen from above."""
+        model = kuka.load(self.scene)
+        parts = []
+        for g in range(model.ngeom):
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
+            if name.startswith(("table", "shelf")) and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+                (x, y), (sx, sy) = model.geom_pos[g][:2], model.geom_size[g][:2]
+                top = model.geom_pos[g][2] + model.geom_size[g][2]
+                label = name.replace("_", " ") + ("" if name == "table" else f" (top {100 * top:.0f} cm)")
+                parts.append(Region(label, (x - sx, y - sy), (x + sx, y + sy)))
+        body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
+        r = float(model.geom_size[model.body_geomadr[body]][0])
+        (cx, cy) = kuka.TABLE_CENTRE
+        return (*parts, Region("via-point reach", kuka.REACH_LOW, kuka.REACH_HIGH, filled=False),
+                Region("object start", (cx - r, cy - r), (cx + r, cy + r)))
 
     def ee_path_length(self, sensors: jax.Array) -> jax.Array:
         """[B] distance travelled by the end effector (the scene's first sensor, "ee_pos")."""

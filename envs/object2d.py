@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from envs import arena2d
-from mqd_jax.task import Task
+from mqd_jax.task import Region, Task
 
 AGENT_START = (0.5, 0.2)
 OBJECT_START = (0.5, 0.5)
@@ -63,6 +63,11 @@ class Object2D(Task):
         """Object centres stay OBJECT_RADIUS away from the walls."""
         lo, hi = OBJECT_RADIUS, 1 - OBJECT_RADIUS
         return np.all((points >= lo) & (points <= hi), axis=-1)
+
+    def layout(self) -> tuple[Region, ...]:
+        disk = lambda label, c, r: Region(label, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r), "disk")  # noqa: E731
+        return (disk("object start", self.object_start, OBJECT_RADIUS),
+                disk("agent start", self.agent_start, AGENT_RADIUS))
 
 
 def make() -> Object2D:

@@ -15,9 +15,10 @@ import jax
 import numpy as np
 
 from envs import arena2d
-from mqd_jax.task import Task
+from mqd_jax.task import Region, Task
 
 START = (0.5, 0.1)
+AGENT_MARK = 0.015  # radius of the start marker in figures (the agent is a point)
 # (x_lo, y_lo, x_hi, y_hi): a wall with a gap, a block behind the gap and a
 # block right above the start.
 OBSTACLES = (
@@ -106,6 +107,12 @@ class Obstacle2D(Task):
         x, y = points[..., 0, None], points[..., 1, None]
         inside = (boxes[:, 0] < x) & (x < boxes[:, 2]) & (boxes[:, 1] < y) & (y < boxes[:, 3])
         return ~inside.any(-1)
+
+    def layout(self) -> tuple[Region, ...]:
+        r = AGENT_MARK
+        start = Region("agent start", (self.start[0] - r, self.start[1] - r), (self.start[0] + r, self.start[1] + r),
+                       "disk")
+        return (*(Region("obstacle", (x0, y0), (x1, y1)) for x0, y0, x1, y1 in self.obstacles), start)
 
 
 def make() -> Obstacle2D:

@@ -5,8 +5,8 @@
 Table II's robotic column (100 generations, population 100, 64 hidden
 neurons). Prints and writes (robot_<task>.md) final coverage, mean quality,
 evaluations and wall time (compilation separately) per algorithm, and draws
-robot_<task>.png: the scene from above (platform, table, the object's start,
-the via-points' reach) with each final repertoire's behaviors on the table.
+robot_<task>.png: the table from above (its layout: shelves, the object's
+start, the via-points' reach) with each final repertoire's behaviors.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import jax
 import numpy as np
 import report
 
-from envs import kuka
-from mqd_jax import Config, run_mqd
+import envs
+from mqd_jax import Config, plots, run_mqd
 
 
 def main() -> None:
@@ -57,19 +57,9 @@ def _plot(behaviors: dict[str, np.ndarray], path: str, task: str) -> None:
     plt = report.pyplot()
     if plt is None:
         return
-    Rectangle = plt.Rectangle
     fig, axes = plt.subplots(1, len(behaviors), figsize=(5 * len(behaviors), 5))
-    (tx0, ty0), (tx1, ty1) = kuka.TABLE_LOW, kuka.TABLE_HIGH
-    (rx0, ry0), (rx1, ry1) = kuka.REACH_LOW, kuka.REACH_HIGH
     for ax, (alg, b) in zip(np.atleast_1d(axes), behaviors.items(), strict=True):
-        ax.add_patch(Rectangle((-0.2, -0.2), 0.4, 0.4, color="0.3", label="platform (robot base at 0, 0)"))
-        ax.add_patch(Rectangle((tx0, ty0), tx1 - tx0, ty1 - ty0, color=(0.6, 0.45, 0.3), alpha=0.5, label="table"))
-        ax.add_patch(Rectangle((rx0, ry0), rx1 - rx0, ry1 - ry0, fill=False, ls="--", label="via-point box"))
-        ax.scatter(b[:, 0], b[:, 1], s=4, c="tab:blue", label=f"{alg} behaviors ({len(b)})")
-        ax.scatter(*kuka.TABLE_CENTRE, marker="s", s=60, c="k", label="object start")
-        ax.set(xlim=(-0.25, 1.0), ylim=(-0.5, 0.5), aspect="equal", title=f"{task}: {alg}", xlabel="x (m)",
-               ylabel="y (m)")
-        ax.legend(loc="lower left", fontsize=7)
+        plots.repertoire(ax, envs.make(task), b, f"{task}: {alg}")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     print(f"wrote {path}")

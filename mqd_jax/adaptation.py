@@ -30,6 +30,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from mqd_jax import model, neighbours
@@ -114,6 +115,20 @@ def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: 
     return Adapted(*best, steps=steps, evaluations=steps)
 
 
+def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task) -> None:
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} is invalid: expected one of {METHODS}")
+    if goals.ndim < 2 or goals.shape[-1] != task.behavior_dim:
+        raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
+    if isinstance(state.repertoire.count, jax.core.Tracer):
+        return
+    if (np.asarray(state.repertoire.count) == 0).any():
+        raise ValueError("the repertoire is empty: run the search first")
+    if method == "model" and (np.asarray(state.model.steps) == 0).any():
+        raise ValueError("method 'model' needs a trained model: this state's model never trained "
+                         "(a QD or RANDOM run, or an M-QD run that did not finish warm-up)")
+
+
 def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str,
           params: Params | None = None) -> Adapted:
     """Adapts the repertoire of `state` toward each goal behavior goals[G, d], in one jitted call.
@@ -128,15 +143,36 @@ def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: s
       params: traced `Params` (t_dist, adaptation_step_size); default `cfg.params()`.
     """
     task = get_task(cfg)
-    if method not in METHODS:
-        raise ValueError(f"method={method!r} is invalid: expected one of {METHODS}")
     goals = jnp.asarray(goals, jnp.float32)
-    if goals.ndim != 2 or goals.shape[1] != task.behavior_dim:
+    _check(state, goals, cfg, method, task)
+    if goals.ndim != 2:
         raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
-    concrete = not isinstance(state.repertoire.count, jax.core.Tracer)
-    if concrete and int(state.repertoire.count) == 0:
-        raise ValueError("the repertoire is empty: run the search first")
-    if method == "model" and concrete and int(state.model.steps) == 0:
-        raise ValueError("method 'model' needs a trained model: this state's model never trained "
-                         "(a QD or RANDOM run, or an M-QD run that did not finish warm-up)")
     return _adapt(state, goals, key, cfg, method, cfg.params() if params is None else params)
+
+
+def adapt_batch(states: State, goals: jax.Array, keys: jax.Array, cfg: Config, method: str) -> Adapted:
+    """`adapt` for S runs' states at once (a sweep's, every array with a leading [S] axis), vmapped.
+
+    goals: [S, G, d], one set per state; keys: [S, 2]. Returns `Adapted` with
+    a leading [S] axis. A host-callback physics backend gets all S x G rollouts
+    of a step in one call.
+    """
+    task = get_task(cfg)
+    goals = jnp.asarray(goals, jnp.float32)
+    _check(states, goals, cfg, method, task)
+    runs = np.shape(states.repertoire.count)
+    if goals.ndim != 3 or goals.shape[:1] != runs or np.shape(keys) != (*runs, 2):
+        raise ValueError(f"adapt_batch: goals {goals.shape} and keys {np.shape(keys)} must be (S, G, "
+                         f"{task.behavior_dim}) and (S, 2) for states of S = {runs} runs")
+    return jax.vmap(lambda s, g, k: _adapt(s, g, k, cfg, method, cfg.params()))(states, goals, keys)
+
+
+def reachable_goals(task: Task, num: int, rng: np.random.Generator) -> np.ndarray:
+    """[num, d] goals uniform in the reachable part of the behavior box (rejection sampling; the paper's
+    "randomly generated desired behaviors")."""
+    low, high = np.asarray(task.behavior_low), np.asarray(task.behavior_high)
+    goals = np.empty((0, len(low)), np.float32)
+    while len(goals) < num:
+        draw = rng.uniform(low, high, (2 * num, len(low))).astype(np.float32)
+        goals = np.concatenate([goals, draw[task.reachable(draw)]])
+    return goals[:num]

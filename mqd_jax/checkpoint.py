@@ -9,7 +9,9 @@ one, so a crash leaves either the previous checkpoint or the new one, never
 half of one. `load` refuses, with a ValueError, a file that is not a
 checkpoint or is corrupt, and one written for another config, task or key.
 
-Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax.
+Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
+of runs (`mqd_jax.sweep`) saves and loads the same way, with keys [S, 2] and
+every state array carrying a leading [S] axis.
 """
 
 from __future__ import annotations
@@ -69,15 +71,18 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
         raise _refuse(path, f"it was written with another config ({listed})")
     if not np.array_equal(payload["key"], np.asarray(key)):
         raise _refuse(path, "it was written by a run started from another key")
-    template = init(key, cfg)
+    key = np.asarray(key)
+    # Shapes only; a batch of runs (keys [S, 2]) saved its states with a leading [S] axis.
+    start = (lambda k: init(k, cfg)) if key.ndim == 1 else jax.vmap(lambda k: init(k, cfg))
+    template = jax.eval_shape(start, key)
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:
         raise _refuse(path, f"its state does not fit this config ({e})") from e
     for want, got in zip(jax.tree.leaves(template), jax.tree.leaves(state), strict=True):
-        if np.shape(want) != np.shape(got) or np.asarray(want).dtype != np.asarray(got).dtype:
-            raise _refuse(path, f"an array of shape {np.shape(got)} where {np.shape(want)} was expected")
-    state = jax.tree.map(lambda want, got: np.asarray(got, np.asarray(want).dtype), template, state)
+        if want.shape != np.shape(got) or want.dtype != np.asarray(got).dtype:
+            raise _refuse(path, f"an array of shape {np.shape(got)} where {want.shape} was expected")
+    state = jax.tree.map(lambda want, got: np.asarray(got, want.dtype), template, state)
     return state, dict(payload["metrics"])
 
 

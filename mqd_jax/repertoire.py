@@ -188,7 +188,17 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
         index = jnp.searchsorted(jnp.asarray(sizes), jnp.minimum(rep.count + pop, capacity))
         return jax.lax.switch(index, [branch(s) for s in sizes], rep)
 
-    return _in_turn_under_vmap(run)(rep, actions, behaviors, qualities, ok, t_dist)
+    # The actions are only written, at the slots the rule picks, so they stay out of the in-turn part:
+    # under vmap that part copies each member's arrays in and out, and the actions are the largest.
+    no_actions = jnp.zeros((rep.capacity, 0), rep.actions.dtype)
+    new, ins = _in_turn_under_vmap(run)(rep.replace(actions=no_actions), no_actions[:behaviors.shape[0]], behaviors,
+                                        qualities, ok, t_dist)
+    return new.replace(actions=rep.actions.at[_written(ins, rep.capacity)].set(actions, mode="drop")), ins
+
+
+def _written(ins: Insertion, capacity: int) -> jax.Array:
+    """[P] the slot each candidate's skill ends in, or `capacity` (out of range) if it is not in the repertoire."""
+    return jnp.where(ins.alive, ins.slot, capacity)
 
 
 def _in_turn_under_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -224,7 +234,7 @@ def insert_dense(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qual
     d_old = jnp.where(rep.valid[None], neighbours.sq_dists(behaviors, rep.behaviors), jnp.inf)
     d_cand = neighbours.sq_dists(behaviors, behaviors)
     ins = _sequential_rule(rep, d_old, d_cand, qualities, ok, t_dist, num_near)
-    slot = jnp.where(ins.alive, ins.slot, rep.capacity)
+    slot = _written(ins, rep.capacity)
     count = rep.count + (ins.status == ADDED).sum(dtype=jnp.int32)
     valid = jnp.arange(rep.capacity) < count
     new_behaviors = rep.behaviors.at[slot].set(behaviors, mode="drop")

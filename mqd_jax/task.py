@@ -10,7 +10,8 @@ never inserted. Subclass `Task` (a frozen dataclass) and implement `evaluate`;
 override `reachable` if part of the behavior box cannot be reached, and
 `quality_range` (a class attribute, default (0, 1)) if qualities lie elsewhere:
 M-QD's model maps it to its tanh output range. A backend that can skip
-rollouts (a host callback) overrides `evaluate_masked`.
+rollouts (a host callback) overrides `evaluate_masked`. `layout` lists the
+scene's parts (`Region`s) that figures draw under the behaviors.
 """
 
 from __future__ import annotations
@@ -21,6 +22,24 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Region:
+    """A part of a task's scene in behavior coordinates, drawn under the behaviors in figures.
+
+    Attributes:
+      label: legend text ("obstacle", "table", ...).
+      low, high: the corners of its bounding box.
+      shape: "box", or "disk" (the disk inscribed in the box).
+      filled: filled, or drawn as a dashed outline.
+    """
+
+    label: str
+    low: tuple[float, float]
+    high: tuple[float, float]
+    shape: str = "box"
+    filled: bool = True
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -70,6 +89,10 @@ class Task:
         The default: the whole box.
         """
         return np.ones(points.shape[:-1], bool)
+
+    def layout(self) -> tuple[Region, ...]:
+        """The scene's parts to draw under the behaviors in figures; the default: none."""
+        return ()
 
 
 def check_outputs(task: Task, name: str, batch: int) -> None:

@@ -60,9 +60,18 @@ def test_every_config_field_has_a_flag_and_presets_apply():
                               "--population", "50"])
     cfg = cli._config(args)
     assert cfg == Config.paper_robot(t_nov=0.05, budgeted=True, algorithm="mqd", population_size=50)
-    assert cli._config(parser.parse_args([])) == Config(max_generations=100)
+    assert cli._config(parser.parse_args([])) == Config()
+    assert cli._config(parser.parse_args([]), defaults={"max_generations": 100}) == Config(max_generations=100)
+    # `mqd sweep`'s preset "auto" is the paper's column for each task.
+    auto = argparse.ArgumentParser()
+    cli._add_config_flags(auto, skip=cli._PER_TASK, preset="auto")
+    args = auto.parse_args(["--t-nov", "0.05"])
+    assert cli._config(args, task="place", algorithm="qd") == Config.paper_robot(task="place", t_nov=0.05)
+    assert cli._config(args, task="object2d", algorithm="qd") == Config.paper_2d(task="object2d", t_nov=0.05)
+    with pytest.raises(SystemExit):
+        auto.parse_args(["--task", "place"])  # per task: --tasks
     for field in dataclasses.fields(Config):
-        value = getattr(Config(max_generations=100), field.name)
+        value = getattr(Config(), field.name)
         flag = "--" + field.name.replace("_", "-")
         argv = [flag] if value is True else ["--no-" + flag[2:]] if value is False else [flag, str(value)]
         assert getattr(parser.parse_args(argv), field.name) == value

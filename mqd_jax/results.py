@@ -1,0 +1,228 @@
+"""A sweep's results folder: what `mqd sweep` and `mqd adapt` write, and the tables `mqd plot` makes of it.
+
+One folder per sweep. For every task and algorithm run:
+
+* `<task>_<algorithm>.json`: the config (every field), the seed keys, wall
+  time, machine, and every metric per seed and generation (`metrics[name]`:
+  [seeds][generations]; NaN written as null).
+* `<task>_<algorithm>.npz`: the final repertoires: `count` [S], `actions`
+  [S, M, n], `behaviors` [S, M, d], `qualities` [S, M] (M: the largest count;
+  rows past a seed's count are padding).
+* `<task>_mqd.msgpack` (M-QD only): the final states, as a checkpoint
+  (`mqd_jax.checkpoint`) with keys [S, 2]: what `mqd adapt` adapts.
+
+`mqd adapt` adds `adaptation.json` ({task: {method: {"error", "steps",
+"reached"}: one value per repertoire}}). Tables are markdown, built from these
+files only, so a folder can be copied and re-tabulated anywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import json
+import os
+import platform
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import numpy as np
+
+from envs import registered_tasks
+from mqd_jax import checkpoint
+from mqd_jax.config import ALGORITHMS, Config
+from mqd_jax.run import State
+from mqd_jax.stats import mann_whitney
+
+# The paper's Table I: final coverage, mean and std, per task and algorithm.
+PAPER_COVERAGE = {
+    "obstacle2d": {"mqd": (0.971, 0.018), "qd": (0.875, 0.017), "random": (0.731, 0.004)},
+    "object2d": {"mqd": (0.504, 0.073), "qd": (0.366, 0.064), "random": (0.035, 0.002)},
+    "push_cube": {"mqd": (0.828, 0.059), "qd": (0.709, 0.047), "random": (0.216, 0.073)},
+    "push_sphere": {"mqd": (0.685, 0.0185), "qd": (0.560, 0.009), "random": (0.171, 0.004)},
+    "place": {"mqd": (0.639, 0.034), "qd": (0.524, 0.009), "random": (0.349, 0.001)},
+}
+NAMES = {"mqd": "M-QD", "qd": "QD", "random": "RANDOM"}
+
+
+def machine() -> str:
+    """The machine figures were measured on, e.g. 'x86_64, 2 CPU cores, jax 0.10.2 on cpu (cpu) x 1'."""
+    return (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()} "
+            f"({jax.devices()[0].device_kind}) x {jax.device_count()}")
+
+
+def write_markdown(lines: list[str], path: str) -> None:
+    """Prints a markdown report and writes it to `path` (creating its folder)."""
+    text = "\n".join(lines)
+    print(text)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path, "w") as f:
+        f.write(text + "\n")
+
+
+def _stem(out: str, task: str, algorithm: str) -> str:
+    return os.path.join(out, f"{task}_{algorithm}")
+
+
+def write_json(path: str, payload: Any) -> None:
+    """Writes strict JSON (NaN as null) atomically: a crash leaves the old file or the new one."""
+    def strict(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {k: strict(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [strict(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return strict(x.tolist())
+        if isinstance(x, float) and x != x:
+            return None
+        return x.item() if isinstance(x, np.generic) else x
+
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(strict(payload), f)
+    os.replace(tmp, path)
+
+
+def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
+    """Whether `out` already holds the runs of `cfg` from exactly these keys."""
+    path = _stem(out, cfg.task, cfg.algorithm) + ".json"
+    if not os.path.exists(path):
+        return False
+    with open(path) as f:
+        saved = json.load(f)
+    return saved.get("config") == dataclasses.asdict(cfg) and saved.get("keys") == np.asarray(keys).tolist()
+
+
+def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: dict[str, np.ndarray],
+              wall_s: float) -> None:
+    """Writes a batch of runs of `cfg` (states and metrics with a leading seed axis) to the folder `out`."""
+    os.makedirs(out, exist_ok=True)
+    stem = _stem(out, cfg.task, cfg.algorithm)
+    rep = jax.device_get(states.repertoire)
+    m = max(int(rep.count.max()), 1)
+    np.savez_compressed(stem + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
+                        qualities=rep.qualities[:, :m])
+    if cfg.algorithm == "mqd":
+        checkpoint.save(stem + ".msgpack", states, metrics, cfg, keys)
+    # The JSON last: its presence marks the runs as complete (`is_done`).
+    write_json(stem + ".json", {"config": dataclasses.asdict(cfg), "keys": np.asarray(keys), "wall_s": wall_s,
+                                "machine": machine(), "metrics": metrics})
+
+
+@dataclasses.dataclass(frozen=True)
+class Runs:
+    """The runs of one task and algorithm, as read back from a results folder.
+
+    Attributes:
+      cfg: their config.
+      keys: [S, 2] seed keys.
+      wall_s: wall time of the batch (compilation included).
+      machine: where it ran.
+      metrics: name -> [S, G] float array (NaN where null).
+      count: [S] final repertoire sizes.
+      behaviors: [S, M, d] final behaviors (rows past count: padding).
+    """
+
+    cfg: Config
+    keys: np.ndarray
+    wall_s: float
+    machine: str
+    metrics: dict[str, np.ndarray]
+    count: np.ndarray
+    behaviors: np.ndarray
+
+    def final(self, name: str) -> np.ndarray:
+        """[S] the metric `name` after the last generation."""
+        return self.metrics[name][:, -1]
+
+
+def load_runs(out: str) -> dict[str, dict[str, Runs]]:
+    """{task: {algorithm: Runs}} for every completed batch of runs in `out` (tasks in registry order)."""
+    found: dict[str, dict[str, Runs]] = {}
+    for path in sorted(glob.glob(os.path.join(out, "*.json"))):
+        stem = path[:-len(".json")]
+        if not os.path.exists(stem + ".npz"):
+            continue  # adaptation.json and other files
+        with open(path) as f:
+            saved = json.load(f)
+        cfg = Config(**saved["config"])
+        rep = np.load(stem + ".npz")
+        metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
+        found.setdefault(cfg.task, {})[cfg.algorithm] = Runs(
+            cfg, np.asarray(saved["keys"], np.uint32), saved["wall_s"], saved["machine"], metrics, rep["count"],
+            rep["behaviors"])
+    if not found:
+        raise ValueError(f"{out!r} holds no sweep results (<task>_<algorithm>.json with .npz): run `mqd sweep` first")
+    order = lambda task: (*registered_tasks(), task).index(task)  # noqa: E731  (the paper's order first)
+    return {task: dict(sorted(found[task].items(), key=lambda kv: ALGORITHMS.index(kv[0])))
+            for task in sorted(found, key=order)}
+
+
+def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
+    """The config, seed keys [S, 2] and final M-QD states (leading axis S) of `task` in `out`."""
+    path = _stem(out, task, "mqd")
+    if not os.path.exists(path + ".json"):
+        raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task}` with M-QD first")
+    with open(path + ".json") as f:
+        saved = json.load(f)
+    cfg, keys = Config(**saved["config"]), np.asarray(saved["keys"], np.uint32)
+    state, _ = checkpoint.load(path + ".msgpack", cfg, keys)
+    return cfg, keys, state
+
+
+def _pm(x: np.ndarray, digits: int = 3) -> str:
+    return f"{np.mean(x):.{digits}f} +- {np.std(x):.{digits}f}"
+
+
+def _p_value(by: dict[str, Runs], a: str, b: str) -> str:
+    """Two-sided Mann-Whitney U p-value of final coverage, algorithm a vs b ('' unless both ran)."""
+    if a not in by or b not in by:
+        return ""
+    return f"{mann_whitney(by[a].final('coverage'), by[b].final('coverage'))[1]:.2g}"
+
+
+def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
+    """Markdown: Table I (final coverage, the paper's layout, the paper's values beside ours), the mean-quality
+    table, and per task the evaluations, wall times and two-sided Mann-Whitney U p-values on final coverage."""
+    algs = [a for a in ALGORITHMS if any(a in r for r in runs.values())]
+    seeds = sorted({len(r.keys) for by in runs.values() for r in by.values()})
+
+    def cells(task: str, cell: Callable[[str, Runs], str]) -> list[str]:
+        return [cell(a, runs[task][a]) if a in runs[task] else "" for a in algs]
+
+    def row(*columns: str) -> str:
+        return "| " + " | ".join(columns) + " |"
+
+    def coverage(task: str, a: str, r: Runs) -> str:
+        paper = PAPER_COVERAGE.get(task, {}).get(a)
+        return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "")
+
+    head = [row("task", *(NAMES[a] for a in algs)), "|---" * (len(algs) + 1) + "|"]
+    lines = [f"Seeds per task: {', '.join(map(str, seeds))}; mean +- std over seeds.", "",
+             "Table I: final coverage (the paper's in brackets)", "", *head]
+    lines += [row(t, *cells(t, lambda a, r, t=t: coverage(t, a, r))) for t in runs]
+    lines += ["", "Final mean quality", "", *head]
+    lines += [row(t, *cells(t, lambda a, r: _pm(r.final("mean_quality")))) for t in runs]
+    lines += ["", "Evaluations (rollouts) per run; wall time of each batch of seeds (compilation included); "
+              "two-sided Mann-Whitney U p-values on final coverage", "",
+              row("task", *(f"{NAMES[a]} evaluations" for a in algs), *(f"{NAMES[a]} wall s" for a in algs),
+                  "p M-QD vs QD", "p QD vs RANDOM"), "|---" * (2 * len(algs) + 3) + "|"]
+    lines += [row(t, *cells(t, lambda a, r: f"{r.final('num_evaluations').mean():.0f}"),
+                  *cells(t, lambda a, r: f"{r.wall_s:.0f}"), _p_value(by, "mqd", "qd"), _p_value(by, "qd", "random"))
+              for t, by in runs.items()]
+    machines = sorted({r.machine for by in runs.values() for r in by.values()})
+    return [*lines, "", "Machine: " + "; ".join(machines)]
+
+
+def adaptation_table(results: dict[str, dict[str, dict[str, list[float]]]]) -> list[str]:
+    """Markdown: per task and method, mean +- std over repertoires of the mean error, mean steps and the
+    fraction of goals within t_dist."""
+    lines = ["Adaptation of final M-QD repertoires toward reachable goals; mean +- std over repertoires.", "",
+             "| task | repertoires x goals | method | mean error | mean steps (= rollouts) | goals within t_dist |",
+             "|---|---|---|---|---|---|"]
+    for task, by_method in results.items():
+        for method, r in by_method.items():
+            lines.append(f"| {task} | {len(r['error'])} x {r['goals']} | {method} | {_pm(r['error'], 4)} | "
+                         f"{np.mean(r['steps']):.2f} | {np.mean(r['reached']):.3f} |")
+    return lines

@@ -1,0 +1,129 @@
+"""Sweeps: many runs of one config (seeds, or a grid of traced `Params`) as one compiled, vmapped call.
+
+`run_batch(cfg, keys, params)` runs R = len(keys) runs of `cfg` side by side
+(`jax.vmap` of `init` and `run_generations`), in chunks of generations so that
+a long sweep reports progress. The run axis is laid out over a `Mesh` of
+every device `jax.devices()` lists (padded to a multiple of the device count
+with copies of the last run, which are dropped again), so the same call runs
+on one CPU or spreads its runs over eight GPUs. On several hosts, call
+`jax.distributed.initialize()` in every process first: `jax.devices()` then
+lists all hosts' devices, inputs are built with
+`jax.make_array_from_callback` and the results are gathered to every process.
+
+Batched runs are reproducible (same keys, config and chunk size give the same
+result on a backend) but are not bit-identical to the same runs made one at a
+time: a vmapped program rounds some operations differently, and QD's runs
+diverge after tens of generations. They agree in distribution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from mqd_jax.config import Config, Params
+from mqd_jax.run import State, init, run_generations
+
+Metrics = dict[str, np.ndarray]
+
+
+def seed_keys(seeds: int, key: jax.Array | None = None) -> jax.Array:
+    """[seeds, 2] the keys of a seed sweep: `seeds` splits of `key` (default PRNGKey(0))."""
+    if not (isinstance(seeds, int) and seeds >= 1):
+        raise ValueError(f"seeds={seeds!r} is invalid: expected an int >= 1")
+    return jax.random.split(jax.random.PRNGKey(0) if key is None else key, seeds)
+
+
+def threshold_grid(cfg: Config, t_nov: Sequence[float], t_qua: Sequence[float],
+                   seeds: int) -> tuple[jax.Array, Params, list[tuple[float, float]]]:
+    """Keys [P*S, 2] and batched Params [P*S] for every (t_nov, t_qua) pair and seed (pair-major), and the P pairs.
+
+    Every pair uses the same S seed keys, so settings are compared on the same seeds.
+    """
+    pairs = list(itertools.product(t_nov, t_qua))
+    if not pairs:
+        raise ValueError("the threshold grid is empty: give at least one t_nov and one t_qua")
+    for pair in pairs:  # the same checks as Config's
+        dataclasses.replace(cfg, t_nov=pair[0], t_qua=pair[1])
+    keys = jnp.tile(seed_keys(seeds), (len(pairs), 1))
+    column = lambda i: jnp.repeat(jnp.asarray([p[i] for p in pairs], jnp.float32), seeds)  # noqa: E731
+    params = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(pairs) * seeds,)), cfg.params())
+    return keys, params.replace(t_nov=column(0), t_qua=column(1)), pairs
+
+
+def _shard(x: np.ndarray, sharding: NamedSharding) -> jax.Array:
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
+def _gather(x: jax.Array) -> np.ndarray:
+    return np.asarray(multihost_utils.process_allgather(x, tiled=True) if jax.process_count() > 1 else x)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _init(keys: jax.Array, cfg: Config) -> State:
+    return jax.vmap(lambda k: init(k, cfg))(keys)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "num"), donate_argnums=0)
+def _chunk(states: State, params: Params, cfg: Config, num: int) -> tuple[State, dict[str, jax.Array]]:
+    return jax.vmap(lambda s, p: run_generations(s, cfg, p, num))(states, params)
+
+
+def run_batch(
+    cfg: Config,
+    keys: jax.Array,
+    params: Params | None = None,
+    chunk: int | None = None,
+    on_chunk: Callable[[int, Metrics], None] | None = None,
+) -> tuple[State, Metrics]:
+    """R runs of `cfg`, vmapped and sharded over the devices.
+
+    Args:
+      cfg: static configuration, shared by every run.
+      keys: [R, 2] one key per run (`seed_keys`).
+      params: traced parameters: unbatched (every run uses them; default
+        `cfg.params()`) or with a leading axis [R] (`threshold_grid`).
+      chunk: generations per compiled call (default: the whole run).
+      on_chunk: called after each chunk with (generations done, that chunk's
+        metrics, each [R, chunk]).
+
+    Returns:
+      The final states (every array with a leading [R] axis, on the devices)
+      and the per-generation metrics, each a numpy array [R, max_generations].
+    """
+    keys = np.asarray(keys)
+    if keys.ndim != 2 or keys.shape[1] != 2 or keys.dtype != np.uint32:
+        raise ValueError(f"keys must be raw uint32 keys of shape (R, 2) (see seed_keys); got {keys.dtype}{keys.shape}")
+    runs = keys.shape[0]
+    params = cfg.params() if params is None else params
+    shapes = {np.shape(leaf) for leaf in jax.tree.leaves(params)}
+    if shapes == {()}:
+        params = jax.tree.map(lambda x: jnp.broadcast_to(x, (runs,)), params)
+    elif shapes != {(runs,)}:
+        raise ValueError(f"params must be scalars or have shape ({runs},) (one per key); got shapes {sorted(shapes)}")
+    chunk = cfg.max_generations if chunk is None else chunk
+    if not (isinstance(chunk, int) and chunk >= 1):
+        raise ValueError(f"chunk={chunk!r} is invalid: expected an int >= 1")
+
+    devices = jax.devices()
+    padded = -(-runs // len(devices)) * len(devices)
+    pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - runs, 0)])  # noqa: E731
+    sharding = NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
+    states = _init(_shard(pad(keys), sharding), cfg)
+    params = jax.tree.map(lambda x: _shard(pad(np.asarray(x, np.float32)), sharding), params)
+    parts: list[Metrics] = []
+    while (done := sum(len(p["coverage"][0]) for p in parts)) < cfg.max_generations:
+        states, metrics = _chunk(states, params, cfg, min(chunk, cfg.max_generations - done))
+        parts.append({k: _gather(v)[:runs] for k, v in metrics.items()})
+        if on_chunk is not None:
+            on_chunk(done + len(parts[-1]["coverage"][0]), parts[-1])
+    states = jax.tree.map(lambda x: x[:runs], states)
+    return states, {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[0]}
