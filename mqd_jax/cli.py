@@ -161,6 +161,7 @@ def _plot(out: str) -> None:
     if os.path.exists(path):
         with open(path) as f:
             found = json.load(f)
+        found = {task: found[task] for task in sorted(found, key=results.task_order)}
         results.write_markdown(results.adaptation_table(found), os.path.join(out, "adaptation.md"))
         plots.adaptation_figure(found, "error", "behavioral error", os.path.join(out, "fig3_adaptation_error.png"))
         plots.adaptation_figure(found, "steps", "adaptation steps", os.path.join(out, "fig4_adaptation_steps.png"))

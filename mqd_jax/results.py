@@ -137,6 +137,11 @@ class Runs:
         return self.metrics[name][:, -1]
 
 
+def task_order(task: str) -> int:
+    """Sort key: the registry's order (the paper's tasks first), then the rest."""
+    return (*registered_tasks(), task).index(task)
+
+
 def load_runs(out: str) -> dict[str, dict[str, Runs]]:
     """{task: {algorithm: Runs}} for every completed batch of runs in `out` (tasks in registry order)."""
     found: dict[str, dict[str, Runs]] = {}
@@ -154,9 +159,8 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
             rep["behaviors"])
     if not found:
         raise ValueError(f"{out!r} holds no sweep results (<task>_<algorithm>.json with .npz): run `mqd sweep` first")
-    order = lambda task: (*registered_tasks(), task).index(task)  # noqa: E731  (the paper's order first)
     return {task: dict(sorted(found[task].items(), key=lambda kv: ALGORITHMS.index(kv[0])))
-            for task in sorted(found, key=order)}
+            for task in sorted(found, key=task_order)}
 
 
 def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
@@ -221,8 +225,8 @@ def adaptation_table(results: dict[str, dict[str, dict[str, list[float]]]]) -> l
     lines = ["Adaptation of final M-QD repertoires toward reachable goals; mean +- std over repertoires.", "",
              "| task | repertoires x goals | method | mean error | mean steps (= rollouts) | goals within t_dist |",
              "|---|---|---|---|---|---|"]
-    for task, by_method in results.items():
-        for method, r in by_method.items():
+    for task in sorted(results, key=task_order):
+        for method, r in results[task].items():
             lines.append(f"| {task} | {len(r['error'])} x {r['goals']} | {method} | {_pm(r['error'], 4)} | "
                          f"{np.mean(r['steps']):.2f} | {np.mean(r['reached']):.3f} |")
     return lines
