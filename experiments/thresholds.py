@@ -24,7 +24,6 @@ import time
 import numpy as np
 import report
 
-import envs
 from mqd_jax import Config
 from mqd_jax.results import write_json
 from mqd_jax.sweep import run_batch, seed_keys, threshold_grid
@@ -39,11 +38,10 @@ def main() -> None:
     parser.add_argument("--t-qua", type=float, nargs="+", default=[0.0, 0.05, 1.0])
     parser.add_argument("--out", default="results/thresholds")
     args = parser.parse_args()
-    preset = Config.paper_robot if args.task in envs.ROBOT_TASKS else Config.paper_2d
     extra = {} if args.generations is None else {"max_generations": args.generations}
-    mqd = preset(task=args.task, algorithm="mqd", **extra)
+    mqd = Config.paper(args.task, algorithm="mqd", **extra)
     start = time.perf_counter()
-    _, qd = run_batch(preset(task=args.task, algorithm="qd", **extra), seed_keys(args.seeds))
+    _, qd = run_batch(Config.paper(args.task, algorithm="qd", **extra), seed_keys(args.seeds))
     qd_s = time.perf_counter() - start
     keys, params, pairs = threshold_grid(mqd, args.t_nov, args.t_qua, args.seeds)
     start = time.perf_counter()

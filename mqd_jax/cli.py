@@ -53,10 +53,8 @@ def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(Config)
              if getattr(args, f.name, None) is not None}
     given.update(fixed)
-    preset = args.preset
-    if preset == "auto":
-        preset = "paper-robot" if given.get("task") in envs.ROBOT_TASKS else "paper-2d"
-    return PRESETS[preset](**{**(defaults or {}), **given})
+    preset = Config.paper if args.preset == "auto" else PRESETS[args.preset]
+    return preset(**{**(defaults or {}), **given})
 
 
 def _progress(label: str, total: int) -> Callable[[int, dict[str, np.ndarray]], None]:

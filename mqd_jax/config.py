@@ -139,6 +139,13 @@ class Config:
         base = dict(max_generations=100, hidden_size=64)
         return cls(**{**base, **overrides})
 
+    @classmethod
+    def paper(cls, task: str, **overrides: Any) -> Config:
+        """Table II's column for `task`: the robotic one for the KUKA tasks, else the 2D one."""
+        from envs import ROBOT_TASKS
+
+        return (cls.paper_robot if task in ROBOT_TASKS else cls.paper_2d)(task=task, **overrides)
+
     @property
     def neighbours(self) -> int:
         """Length of the neighbour list kept per skill."""
