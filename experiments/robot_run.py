@@ -60,9 +60,7 @@ def _plot(behaviors: dict[str, np.ndarray], path: str, task: str) -> None:
     fig, axes = plt.subplots(1, len(behaviors), figsize=(5 * len(behaviors), 5))
     for ax, (alg, b) in zip(np.atleast_1d(axes), behaviors.items(), strict=True):
         plots.repertoire(ax, envs.make(task), b, f"{task}: {alg}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    print(f"wrote {path}")
+    plots.save(fig, path)
 
 
 if __name__ == "__main__":

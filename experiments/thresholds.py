@@ -24,7 +24,7 @@ import time
 import numpy as np
 import report
 
-from mqd_jax import Config
+from mqd_jax import Config, plots
 from mqd_jax.results import write_json
 from mqd_jax.sweep import run_batch, seed_keys, threshold_grid
 
@@ -86,9 +86,7 @@ def _plot(task: str, pairs: list[tuple[float, float]], coverage: np.ndarray, spe
                     c=colours[t_novs.index(t_nov)], capsize=3, label=f"M-QD t_nov {t_nov}, t_qua {t_qua}")
     ax.set(xlabel="evaluations", ylabel="final coverage (M-QD) / coverage (QD)", title=f"{task}: filter thresholds")
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    print(f"wrote {path}")
+    plots.save(fig, path)
 
 
 if __name__ == "__main__":

@@ -41,7 +41,11 @@ def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array)
         "state": serialization.to_state_dict(jax.device_get(state)),
         "metrics": {k: np.asarray(v) for k, v in metrics.items()},
     }
-    data = serialization.msgpack_serialize(payload)
+    write_atomically(path, serialization.msgpack_serialize(payload))
+
+
+def write_atomically(path: str, data: bytes) -> None:
+    """Writes `data` to a temporary file and renames it over `path`: a crash leaves the old file or the new one."""
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "wb") as f:
         f.write(data)

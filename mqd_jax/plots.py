@@ -32,7 +32,8 @@ def pyplot() -> Any:
     return plt
 
 
-def _save(fig: Any, path: str) -> str:
+def save(fig: Any, path: str) -> str:
+    """Writes `fig` to `path` (PNG, 100 dpi) and says so."""
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     print(f"wrote {path}")
@@ -68,7 +69,7 @@ def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray
     ax1.plot(metrics["num_evaluations"], metrics["coverage"])
     ax1.set(xlabel="evaluations", ylabel="coverage")
     repertoire(ax2, task, behaviors, "final repertoire")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def figure2(task: Task, name: str, runs: dict[str, Runs], path: str) -> str | None:
@@ -86,7 +87,7 @@ def figure2(task: Task, name: str, runs: dict[str, Runs], path: str) -> str | No
     axes[0].legend()
     for ax, (alg, r) in zip(axes[1:], runs.items(), strict=True):
         repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES[alg]}, seed 0")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def adaptation_figure(results: dict[str, dict[str, dict[str, list[float]]]], metric: str, label: str,
@@ -104,4 +105,4 @@ def adaptation_figure(results: dict[str, dict[str, dict[str, list[float]]]], met
     ax.set_xticks(np.arange(len(results)) + width * (len(METHODS) - 1) / 2, list(results))
     ax.set_ylabel(label)
     ax.legend()
-    return _save(fig, path)
+    return save(fig, path)

@@ -78,10 +78,7 @@ def write_json(path: str, payload: Any) -> None:
             return None
         return x.item() if isinstance(x, np.generic) else x
 
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(strict(payload), f)
-    os.replace(tmp, path)
+    checkpoint.write_atomically(path, json.dumps(strict(payload)).encode())
 
 
 def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
