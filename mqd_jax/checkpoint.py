@@ -28,8 +28,14 @@ from flax import serialization
 from mqd_jax.config import Config, Params
 from mqd_jax.run import State, init, run_generations
 
-FORMAT = 1
+FORMAT = 2
 Metrics = dict[str, np.ndarray]
+
+
+def _from_format_1(state: dict[str, Any]) -> dict[str, Any]:
+    """Format 1 saved the coverage grid's bounds as arrays; since format 2 they come from the config."""
+    coverage = {k: v for k, v in state["coverage"].items() if k not in ("low", "high")}
+    return {**state, "coverage": coverage}
 
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
@@ -66,8 +72,10 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
         payload: Any = serialization.msgpack_restore(data)
     except Exception as e:  # msgpack raises several types on damaged bytes
         raise _refuse(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from e
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise _refuse(path, f"not an mqd-jax checkpoint of format {FORMAT}")
+    if not isinstance(payload, dict) or payload.get("format") not in (1, FORMAT):
+        raise _refuse(path, f"not an mqd-jax checkpoint of format 1 or {FORMAT}")
+    if payload["format"] == 1:
+        payload["state"] = _from_format_1(payload["state"])
     saved = payload["config"]
     differ = {k: (saved.get(k), v) for k, v in dataclasses.asdict(cfg).items() if saved.get(k) != v}
     if differ:

@@ -25,14 +25,15 @@ class CoverageGrid:
     Attributes:
       counts: [G, G] int32, number of disks covering each cell centre.
       reachable: [G, G] bool, cells whose centre is reachable.
-      low, high: [2] the behavior box.
+      low, high: static, the behavior box (2 floats each): compile-time
+        constants, which makes stamping markedly faster than traced bounds.
       reach: static, the largest disk radius stamped, in cells.
     """
 
     counts: jax.Array
     reachable: jax.Array
-    low: jax.Array
-    high: jax.Array
+    low: tuple[float, float] = struct.field(pytree_node=False)
+    high: tuple[float, float] = struct.field(pytree_node=False)
     reach: int = struct.field(pytree_node=False)
 
 
@@ -49,8 +50,8 @@ def empty(low: np.ndarray, high: np.ndarray, reachable: np.ndarray, max_radius: 
     return CoverageGrid(
         counts=jnp.zeros(reachable.shape, jnp.int32),
         reachable=jnp.asarray(reachable),
-        low=jnp.asarray(low, jnp.float32),
-        high=jnp.asarray(high, jnp.float32),
+        low=tuple(float(x) for x in np.asarray(low, np.float32)),
+        high=tuple(float(x) for x in np.asarray(high, np.float32)),
         reach=math.ceil(max_radius / cell) + 1,
     )
 
@@ -58,13 +59,14 @@ def empty(low: np.ndarray, high: np.ndarray, reachable: np.ndarray, max_radius: 
 def stamp(grid: CoverageGrid, centres: jax.Array, weights: jax.Array, radius: jax.Array) -> CoverageGrid:
     """Adds `weights[P]` (+1 stamp, -1 unstamp, 0 nothing) on the disks around centres[P, 2]."""
     g = grid.counts.shape[0]
-    size = (grid.high - grid.low) / g
+    low = jnp.asarray(grid.low, jnp.float32)
+    size = (jnp.asarray(grid.high, jnp.float32) - low) / g
     offsets = jnp.arange(-grid.reach, grid.reach + 1)
-    base = jnp.floor((centres - grid.low) / size).astype(jnp.int32)  # [P, 2]
+    base = jnp.floor((centres - low) / size).astype(jnp.int32)  # [P, 2]
     ix = base[:, 0, None, None] + offsets[None, :, None]  # [P, S, 1]
     iy = base[:, 1, None, None] + offsets[None, None, :]  # [P, 1, S]
-    cx = grid.low[0] + (ix + 0.5) * size[0]
-    cy = grid.low[1] + (iy + 0.5) * size[1]
+    cx = low[0] + (ix + 0.5) * size[0]
+    cy = low[1] + (iy + 0.5) * size[1]
     inside = ((cx - centres[:, 0, None, None]) ** 2 + (cy - centres[:, 1, None, None]) ** 2 <= radius**2)
     inside &= (ix >= 0) & (ix < g) & (iy >= 0) & (iy < g) & (weights[:, None, None] != 0)
     flat = jnp.where(inside, ix * g + iy, g * g).reshape(-1)

@@ -20,14 +20,12 @@ All distances are squared until novelty takes the square root.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TypeVar
-
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-Carry = TypeVar("Carry")
+from mqd_jax import batching
+
 _BLOCK = 32
 
 
@@ -72,20 +70,6 @@ def k_smallest(values: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
     return _passes(picked, picked_cols.astype(jnp.int32), k)
 
 
-def for_each_chunk(mask: jax.Array, size: int, fn: Callable[[jax.Array, Carry], Carry], carry: Carry) -> Carry:
-    """Calls fn(rows[size], carry) on the set rows of mask[C], `size` at a time.
-
-    Unused places in `rows` hold C (out of range): gathers clamp, so `fn` must
-    drop writes to them (`.at[rows].set(..., mode="drop")`).
-    """
-    def body(state: tuple[jax.Array, Carry]) -> tuple[jax.Array, Carry]:
-        todo, c = state
-        rows = jnp.nonzero(todo, size=size, fill_value=todo.shape[0])[0]
-        return todo.at[rows].set(False, mode="drop"), fn(rows, c)
-
-    return jax.lax.while_loop(lambda s: s[0].any(), body, (mask, carry))[1]
-
-
 @struct.dataclass
 class NeighbourLists:
     """Per-skill nearest-neighbour lists over a repertoire of capacity C.
@@ -124,12 +108,20 @@ def _recompute(lists: NeighbourLists, rows: jax.Array, d: jax.Array) -> Neighbou
     )
 
 
-def _merge(lists: NeighbourLists, rows: jax.Array, new_d: jax.Array, new_slots: jax.Array) -> NeighbourLists:
-    """Merges candidate neighbours new_d[P, C] (inf: not a candidate) into `rows`."""
-    length = lists.length
-    v = jnp.concatenate([lists.sq_dist[rows], new_d[:, rows].T], axis=1)
-    i = jnp.concatenate([lists.index[rows], jnp.broadcast_to(new_slots, (rows.shape[0], new_slots.shape[0]))], 1)
-    v, i = _passes(v, jnp.where(jnp.isfinite(v), i, jnp.iinfo(jnp.int32).max), length + 1)
+def _rebuild(rows: jax.Array, lists: NeighbourLists, behaviors: jax.Array, valid: jax.Array) -> NeighbourLists:
+    """Rebuilds the lists of `rows` by a search over every skill (behaviors[C, d], valid[C])."""
+    d = sq_dists(behaviors[rows], behaviors)
+    return _recompute(lists, rows, jnp.where(valid[None] & (rows[:, None] != jnp.arange(valid.shape[0])), d, jnp.inf))
+
+
+def _merge(rows: jax.Array, lists: NeighbourLists, behaviors: jax.Array, new_slots: jax.Array) -> NeighbourLists:
+    """Merges into the lists of `rows` the new skills (at new_slots[P]; C: none) inside their radius."""
+    capacity = behaviors.shape[0]
+    d = sq_dists(behaviors[rows], behaviors[jnp.minimum(new_slots, capacity - 1)])  # [R, P]
+    d = jnp.where((new_slots < capacity)[None] & (d < lists.radius[rows][:, None]), d, jnp.inf)
+    v = jnp.concatenate([lists.sq_dist[rows], d], axis=1)
+    i = jnp.concatenate([lists.index[rows], jnp.broadcast_to(new_slots, d.shape)], 1)
+    v, i = _passes(v, jnp.where(jnp.isfinite(v), i, jnp.iinfo(jnp.int32).max), lists.length + 1)
     return NeighbourLists(
         sq_dist=lists.sq_dist.at[rows].set(v[:, :-1], mode="drop"),
         index=lists.index.at[rows].set(i[:, :-1], mode="drop"),
@@ -141,7 +133,6 @@ def update(
     lists: NeighbourLists,
     behaviors: jax.Array,
     valid: jax.Array,
-    new_d: jax.Array,
     removed: jax.Array,
     new_slots: jax.Array,
     k: int,
@@ -149,11 +140,14 @@ def update(
 ) -> NeighbourLists:
     """Brings the lists up to date after a generation's insertions.
 
+    Distances are computed a chunk of rows at a time where they are needed;
+    the new skills' distances to every skill only feed one reduction (which
+    lists a new skill falls inside). Stored [P, C] matrices, batched over a
+    sweep's runs, no longer fit in cache.
+
     Args:
       lists: lists exact for the repertoire before the generation.
       behaviors: [C, d] behaviors after the generation; valid: [C] their mask.
-      new_d: [P, C] squared distances from each new skill to every skill after
-        the generation (inf for invalid slots).
       removed: [C] slots whose previous skill was replaced this generation.
       new_slots: [P] slot of each new skill; C for a candidate that is not one.
       k: the novelty's K; chunk: rows processed at a time.
@@ -161,28 +155,17 @@ def update(
     capacity = valid.shape[0]
     gone = (lists.index >= 0) & removed[jnp.maximum(lists.index, 0)]
     lists = lists.replace(sq_dist=jnp.where(gone, jnp.inf, lists.sq_dist), index=jnp.where(gone, -1, lists.index))
-    is_new = new_slots < capacity
     changed = jnp.zeros_like(valid).at[new_slots].set(True, mode="drop")
 
-    # New skills' own lists, from the distances at hand (the diagonal is self).
-    own = jnp.where(jnp.arange(capacity) == new_slots[:, None], jnp.inf, new_d)
-    lists = for_each_chunk(is_new, chunk, lambda rows, ls: _recompute(
-        ls, jnp.where(rows < is_new.shape[0], new_slots[jnp.minimum(rows, is_new.shape[0] - 1)], capacity),
-        own[rows]), lists)
+    # Other skills whose certainty radius a new skill falls inside take it into their list.
+    d_new = sq_dists(behaviors[jnp.minimum(new_slots, capacity - 1)], behaviors)  # [P, C]
+    hit = valid & ~changed & ((new_slots < capacity)[:, None] & (d_new < lists.radius[None])).any(0)
+    lists = batching.for_each_chunk(hit, chunk, _merge, lists, behaviors, new_slots)
 
-    hit = is_new[:, None] & (valid & ~changed)[None] & (new_d < lists.radius[None])
-    merged = jnp.where(hit, new_d, jnp.inf)
-    lists = for_each_chunk(hit.any(0), chunk, lambda rows, ls: _merge(ls, rows, merged, new_slots), lists)
-
-    # Lists that removals left with fewer than k certain neighbours: recompute.
+    # New skills, and lists that removals left with fewer than k certain neighbours: recomputed.
     certain = jnp.isfinite(lists.sq_dist).sum(1)
-    depleted = valid & (certain < k) & jnp.isfinite(lists.radius)
-
-    def rebuild(rows: jax.Array, ls: NeighbourLists) -> NeighbourLists:
-        d = sq_dists(behaviors[rows], behaviors)
-        return _recompute(ls, rows, jnp.where(valid[None] & (rows[:, None] != jnp.arange(capacity)), d, jnp.inf))
-
-    return for_each_chunk(depleted, chunk, rebuild, lists)
+    rebuild = valid & (changed | ((certain < k) & jnp.isfinite(lists.radius)))
+    return batching.for_each_chunk(rebuild, chunk, _rebuild, lists, behaviors, valid)
 
 
 def novelty(lists: NeighbourLists, valid: jax.Array, k: int) -> jax.Array:

@@ -16,14 +16,15 @@ candidate, and falls back to an exact O(C) search when all M were replaced.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import neighbours
+from mqd_jax import batching, neighbours
 
 # Outcome of a candidate, in `Insertion.status`.
 SKIPPED, ADDED, REPLACED, REJECTED, DROPPED_FULL = 0, 1, 2, 3, 4
@@ -73,7 +74,6 @@ class Insertion:
       status: [P] int32, one of SKIPPED, ADDED, REPLACED, REJECTED, DROPPED_FULL.
       slot: [P] slot a candidate was written to (meaningful for ADDED/REPLACED).
       alive: [P] whether the candidate is still in the repertoire at the end.
-      removed: [C] slots whose pre-generation skill was replaced.
       archived: [P] whether an archive entry came out of this candidate's step;
         the entry is the candidate itself (REJECTED, DROPPED_FULL) or the skill
         it replaced, given by `victim_slot` (>= 0, a pre-generation skill) or
@@ -83,7 +83,6 @@ class Insertion:
     status: jax.Array
     slot: jax.Array
     alive: jax.Array
-    removed: jax.Array
     victim_slot: jax.Array
     victim_candidate: jax.Array
 
@@ -92,41 +91,53 @@ class Insertion:
         return (self.status == REJECTED) | (self.status == DROPPED_FULL) | (self.status == REPLACED)
 
 
-def _sequential_rule(rep: Repertoire, d_old: jax.Array, d_cand: jax.Array, qualities: jax.Array, ok: jax.Array,
-                     t_dist: jax.Array, num_near: int) -> Insertion:
+def _replaced(victim_slot: jax.Array, size: int) -> jax.Array:
+    """[size] mask of the pre-generation slots in victim_slot[P] (-1: none)."""
+    return jnp.zeros(size, bool).at[jnp.where(victim_slot >= 0, victim_slot, size)].set(True, mode="drop")
+
+
+def _nearest_remaining(behavior: jax.Array, behaviors: jax.Array, valid: jax.Array, qualities: jax.Array,
+                       victim_slot: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Squared distance, slot and quality of the pre-generation skill nearest to behavior[d] among those
+    victim_slot[P] has not replaced (inf if there is none); behaviors: [C, d], valid, qualities: [C]."""
+    d = jnp.where(valid & ~_replaced(victim_slot, valid.shape[0]),
+                  neighbours.sq_dists(behavior[None], behaviors)[0], jnp.inf)
+    j = jnp.argmin(d).astype(jnp.int32)
+    return d[j], j, qualities[j]
+
+
+def _sequential_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
+                     d_cand: jax.Array, qualities: jax.Array, ok: jax.Array, t_dist: jax.Array) -> Insertion:
     """Runs the insertion rule candidate by candidate; writes nothing yet.
 
-    d_old: [P, C] squared distances from candidates to the skills before the
-    generation (inf for empty slots); d_cand: [P, P] between candidates.
+    near_d, near_i: [P, M] each candidate's M nearest pre-generation skills,
+    ascending (squared distance, slot; inf and -1 where there are fewer);
+    d_cand: [P, P] squared distances between candidates. The loop's state is
+    O(P), so it batches well under vmap.
     """
     capacity, pop = rep.capacity, d_cand.shape[0]
     t2 = t_dist**2
-    near_d, near_i = neighbours.k_smallest(d_old, min(num_near, capacity))
-
-    def nearest_old(i: jax.Array, removed: jax.Array) -> tuple[jax.Array, jax.Array]:
-        usable = (near_i[i] >= 0) & ~removed[jnp.maximum(near_i[i], 0)]
-        first = jnp.argmax(usable)
-
-        def exhaustive() -> tuple[jax.Array, jax.Array]:
-            d = jnp.where(removed, jnp.inf, d_old[i])
-            j = jnp.argmin(d).astype(jnp.int32)
-            return d[j], j
-
-        # All M listed skills were replaced and the next one may be within t_dist.
-        need_all = ~usable.any() & (near_d[i, -1] <= t2)
-        quick = (jnp.where(usable.any(), near_d[i, first], jnp.inf), near_i[i, first])
-        return jax.lax.cond(need_all, exhaustive, lambda: quick)
+    near_q = rep.qualities[jnp.maximum(near_i, 0)]
+    cands = jnp.arange(pop)
 
     def step(i: jax.Array, s: Insertion) -> Insertion:
         count = (s.status == ADDED).sum()
-        d_o, j_o = nearest_old(i, s.removed)
+        listed = near_i[i]
+        usable = (listed >= 0) & ~(listed[:, None] == s.victim_slot[None]).any(1)
+        first = jnp.argmax(usable)
+        quick = (jnp.where(usable.any(), near_d[i, first], jnp.inf), listed[first], near_q[i, first])
+        # All M listed skills were replaced and the next one may be within t_dist.
+        need_all = ~usable.any() & (near_d[i, -1] <= t2)
+        d_o, j_o, q_o = batching.rare_cond(
+            need_all, lambda *a: _nearest_remaining(*a[:-1]), lambda *a: a[-1],
+            behaviors[i], rep.behaviors, rep.valid, rep.qualities, s.victim_slot, quick)
         d_c_row = jnp.where(s.alive, d_cand[i], jnp.inf)
         j_c = jnp.argmin(d_c_row)
         d_c, slot_c = d_c_row[j_c], s.slot[j_c]
         # Nearest by (distance, slot), as a scan over the repertoire's slots would find.
         use_c = (d_c < d_o) | ((d_c == d_o) & (slot_c < j_o))
         d_n = jnp.where(use_c, d_c, d_o)
-        q_n = jnp.where(use_c, qualities[j_c], rep.qualities[jnp.maximum(j_o, 0)])
+        q_n = jnp.where(use_c, qualities[j_c], q_o)
         is_new = d_n > t2
         full = rep.count + count >= capacity
         replace = ok[i] & ~is_new & (qualities[i] > q_n)
@@ -134,20 +145,19 @@ def _sequential_rule(rep: Repertoire, d_old: jax.Array, d_cand: jax.Array, quali
             [~ok[i], is_new & ~full, is_new, replace],
             [SKIPPED, ADDED, DROPPED_FULL, REPLACED], REJECTED)
         slot_i = jnp.where(status == ADDED, rep.count + count, jnp.where(use_c, slot_c, j_o))
+        # Whole-row selects rather than scatters: P is small, and they batch without a gather.
+        at_i = cands == i
         return Insertion(
-            status=s.status.at[i].set(status),
-            slot=s.slot.at[i].set(slot_i),
-            alive=s.alive.at[j_c].set(s.alive[j_c] & ~(replace & use_c))
-                         .at[i].set((status == ADDED) | replace),
-            removed=s.removed.at[jnp.maximum(j_o, 0)].set(s.removed[jnp.maximum(j_o, 0)] | (replace & ~use_c)),
-            victim_slot=s.victim_slot.at[i].set(jnp.where(replace & ~use_c, j_o, -1)),
-            victim_candidate=s.victim_candidate.at[i].set(jnp.where(replace & use_c, j_c, -1)),
+            status=jnp.where(at_i, status, s.status),
+            slot=jnp.where(at_i, slot_i, s.slot),
+            alive=jnp.where(at_i, (status == ADDED) | replace, s.alive & ~((cands == j_c) & replace & use_c)),
+            victim_slot=jnp.where(at_i, jnp.where(replace & ~use_c, j_o, -1), s.victim_slot),
+            victim_candidate=jnp.where(at_i, jnp.where(replace & use_c, j_c, -1), s.victim_candidate),
         )
 
-    init = Insertion(
-        status=jnp.zeros(pop, jnp.int32), slot=jnp.zeros(pop, jnp.int32), alive=jnp.zeros(pop, bool),
-        removed=jnp.zeros(capacity, bool), victim_slot=jnp.full(pop, -1, jnp.int32),
-        victim_candidate=jnp.full(pop, -1, jnp.int32))
+    none = jnp.full(pop, -1, jnp.int32)
+    init = Insertion(status=jnp.zeros(pop, jnp.int32), slot=jnp.zeros(pop, jnp.int32), alive=jnp.zeros(pop, bool),
+                     victim_slot=none, victim_candidate=none)
     return jax.lax.fori_loop(0, pop, step, init)
 
 
@@ -156,44 +166,41 @@ def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
     return jax.tree.map(lambda x: x[:size] if x.ndim and x.shape[0] == capacity else x, tree)
 
 
-def _write_prefix(full: Repertoire, part: Repertoire) -> Repertoire:
-    return jax.tree.map(lambda x, y: x.at[:y.shape[0]].set(y) if x.ndim else y, full, part)
+def _on_prefix(sizes: Sequence[int], needed: jax.Array, fn: Callable[..., Any], *operands: Any) -> Any:
+    """fn(size, *operands) for the smallest of `sizes` (ascending) that is >= needed (capped at the last).
 
-
-def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
-           t_dist: jax.Array, k: int, num_near: int, chunk: int, min_prefix: int = 512
-           ) -> tuple[Repertoire, Insertion]:
-    """Inserts a generation of candidates and updates novelty.
-
-    Skills fill a prefix of the arrays, so the work is done on the smallest
-    prefix of C / 2^j slots (at least `min_prefix`) that can hold every skill
-    after this generation: its cost follows the repertoire's size, not C.
-    Under `jax.vmap` (seeds, hyperparameters) the batch's insertions run one
-    after another: batched, the size-dependent branches and loops would all run
-    for every member. See `insert_dense` for the arguments.
+    `fn` must give the same result for every size >= needed; under vmap the
+    batch then shares the size its largest member needs (`batching.switch_largest`).
     """
-    def run(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
-            t_dist: jax.Array) -> tuple[Repertoire, Insertion]:
-        capacity, pop = rep.capacity, behaviors.shape[0]
-        sizes = sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
+    index = jnp.searchsorted(jnp.asarray(sizes), jnp.minimum(needed, sizes[-1]))
+    return batching.switch_largest(index, [functools.partial(fn, size) for size in sizes], *operands)
 
-        def branch(size: int) -> Callable[[Repertoire], tuple[Repertoire, Insertion]]:
-            def on_prefix(rep: Repertoire) -> tuple[Repertoire, Insertion]:
-                part, ins = insert_dense(_prefix(rep, size, capacity), actions, behaviors, qualities, ok, t_dist,
-                                         k, num_near, chunk)
-                removed = jnp.zeros(capacity, bool).at[:size].set(ins.removed)
-                return _write_prefix(rep, part), ins.replace(removed=removed)
-            return on_prefix
 
-        index = jnp.searchsorted(jnp.asarray(sizes), jnp.minimum(rep.count + pop, capacity))
-        return jax.lax.switch(index, [branch(s) for s in sizes], rep)
+def _nearest_before(num_near: int, size: int, rep: Repertoire, behaviors: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """[P, M] squared distances and slots of each candidate's M nearest skills, searched in the first `size` slots."""
+    part = _prefix(rep, size, rep.capacity)
+    return neighbours.k_smallest(jnp.where(part.valid[None], neighbours.sq_dists(behaviors, part.behaviors), jnp.inf),
+                                 num_near)
 
-    # The actions are only written, at the slots the rule picks, so they stay out of the in-turn part:
-    # under vmap that part copies each member's arrays in and out, and the actions are the largest.
-    no_actions = jnp.zeros((rep.capacity, 0), rep.actions.dtype)
-    new, ins = _in_turn_under_vmap(run)(rep.replace(actions=no_actions), no_actions[:behaviors.shape[0]], behaviors,
-                                        qualities, ok, t_dist)
-    return new.replace(actions=rep.actions.at[_written(ins, rep.capacity)].set(actions, mode="drop")), ins
+
+def _apply(k: int, chunk: int, size: int, rep: Repertoire, behaviors: jax.Array, qualities: jax.Array,
+           ins: Insertion) -> Repertoire:
+    """Writes the rule's outcome into the first `size` slots (all but actions) and brings novelty up to date."""
+    part = _prefix(rep, size, rep.capacity)
+    slot = _written(ins, size)
+    count = rep.count + (ins.status == ADDED).sum(dtype=jnp.int32)
+    valid = jnp.arange(size) < count
+    new_behaviors = part.behaviors.at[slot].set(behaviors, mode="drop")
+    lists = neighbours.update(part.neighbours, new_behaviors, valid, _replaced(ins.victim_slot, size), slot, k, chunk)
+    part = part.replace(
+        behaviors=new_behaviors,
+        qualities=part.qualities.at[slot].set(qualities, mode="drop"),
+        novelty=neighbours.novelty(lists, valid, k),
+        valid=valid,
+        count=count,
+        neighbours=lists,
+    )
+    return jax.tree.map(lambda x, y: x.at[:y.shape[0]].set(y) if x.ndim else y, rep, part)
 
 
 def _written(ins: Insertion, capacity: int) -> jax.Array:
@@ -201,24 +208,10 @@ def _written(ins: Insertion, capacity: int) -> jax.Array:
     return jnp.where(ins.alive, ins.slot, capacity)
 
 
-def _in_turn_under_vmap(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """`fn`, whose vmap runs the batch's members one after another (`lax.map`) instead of batching its ops."""
-    wrapped = jax.custom_batching.custom_vmap(fn)
-
-    @wrapped.def_vmap
-    def rule(axis_size: int, in_batched: Any, *args: Any) -> tuple[Any, Any]:
-        args = jax.tree.map(lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
-                            args, tuple(in_batched))
-        # `wrapped` again, so that an outer vmap (seeds x hyperparameters) also runs in turn.
-        out = jax.lax.map(lambda a: wrapped(*a), args)
-        return out, jax.tree.map(lambda _: True, out)
-
-    return wrapped
-
-
-def insert_dense(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
-                 t_dist: jax.Array, k: int, num_near: int, chunk: int) -> tuple[Repertoire, Insertion]:
-    """Inserts a generation of candidates into all C slots and updates novelty.
+def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
+           t_dist: jax.Array, k: int, num_near: int, chunk: int, min_prefix: int = 512
+           ) -> tuple[Repertoire, Insertion]:
+    """Inserts a generation of candidates and updates novelty.
 
     Args:
       rep: the repertoire before the generation.
@@ -226,29 +219,26 @@ def insert_dense(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qual
       ok: [P] candidates that were evaluated and returned a valid, finite result;
         the others are skipped.
       t_dist: distance threshold; k: novelty's K; num_near: M above; chunk: rows
-        of neighbour lists updated at a time.
+        of neighbour lists updated at a time; min_prefix: see below.
 
     Returns:
       The new repertoire (novelty up to date) and what happened to each candidate.
+
+    Skills fill a prefix of the arrays, so the nearest-skill search before the
+    rule and the writes and neighbour lists after it work on the smallest
+    prefix of C / 2^j slots (at least `min_prefix`) that holds every skill:
+    their cost follows the repertoire's size, not C. Under `jax.vmap` the
+    batch works on the prefix its largest repertoire needs, and its loops and
+    rare branches run once for the batch (`mqd_jax.batching`).
     """
-    d_old = jnp.where(rep.valid[None], neighbours.sq_dists(behaviors, rep.behaviors), jnp.inf)
-    d_cand = neighbours.sq_dists(behaviors, behaviors)
-    ins = _sequential_rule(rep, d_old, d_cand, qualities, ok, t_dist, num_near)
-    slot = _written(ins, rep.capacity)
-    count = rep.count + (ins.status == ADDED).sum(dtype=jnp.int32)
-    valid = jnp.arange(rep.capacity) < count
-    new_behaviors = rep.behaviors.at[slot].set(behaviors, mode="drop")
-    # Distances to the repertoire after the generation: the written columns now
-    # hold candidates.
-    d_new = d_old.at[:, slot].set(d_cand, mode="drop")
-    lists = neighbours.update(rep.neighbours, new_behaviors, valid, d_new, ins.removed, slot, k, chunk)
-    rep = Repertoire(
-        actions=rep.actions.at[slot].set(actions, mode="drop"),
-        behaviors=new_behaviors,
-        qualities=rep.qualities.at[slot].set(qualities, mode="drop"),
-        novelty=neighbours.novelty(lists, valid, k),
-        valid=valid,
-        count=count,
-        neighbours=lists,
-    )
-    return rep, ins
+    capacity, pop = rep.capacity, behaviors.shape[0]
+    sizes = sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
+    # The actions are only written, at the slots the rule picks: they stay out of the prefix work.
+    slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
+    near_d, near_i = _on_prefix(sizes, rep.count, functools.partial(_nearest_before, min(num_near, sizes[0])), slim,
+                                behaviors)
+    ins = _sequential_rule(rep, behaviors, near_d, near_i, neighbours.sq_dists(behaviors, behaviors), qualities, ok,
+                           t_dist)
+    new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
+                     behaviors, qualities, ins)
+    return new.replace(actions=rep.actions.at[_written(ins, capacity)].set(actions, mode="drop")), ins

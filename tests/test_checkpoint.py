@@ -4,6 +4,7 @@ import os
 import jax
 import numpy as np
 import pytest
+from flax import serialization
 from test_run import tiny
 
 from mqd_jax import checkpoint, run_mqd
@@ -75,6 +76,26 @@ def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.load(str(path), CFG, KEY)
     path.write_bytes(b"\x93\x01\x02\x03")  # valid msgpack, not a checkpoint
     with pytest.raises(ValueError, match="not an mqd-jax checkpoint"):
+        checkpoint.load(str(path), CFG, KEY)
+    payload = serialization.msgpack_restore(data)
+    path.write_bytes(serialization.msgpack_serialize({**payload, "format": checkpoint.FORMAT + 1}))
+    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 or 2"):
+        checkpoint.load(str(path), CFG, KEY)
+
+
+def test_format_1_checkpoints_still_load(tmp_path, uninterrupted):
+    """Format 1 kept the coverage bounds as arrays in the state; they are dropped on loading."""
+    path = tmp_path / "run.ckpt"
+    checkpoint.save(str(path), *uninterrupted, CFG, KEY)
+    payload = serialization.msgpack_restore(path.read_bytes())
+    coverage = {**payload["state"]["coverage"], "low": np.zeros(2, np.float32), "high": np.ones(2, np.float32)}
+    old = {**payload, "format": 1, "state": {**payload["state"], "coverage": coverage}}
+    path.write_bytes(serialization.msgpack_serialize(old))
+    state, metrics = checkpoint.load(str(path), CFG, KEY)
+    assert_trees_equal(state, uninterrupted[0])
+    assert_trees_equal(metrics, uninterrupted[1])
+    path.write_bytes(serialization.msgpack_serialize({**old, "format": 2}))  # the arrays are not part of format 2
+    with pytest.raises(ValueError, match="does not fit this config"):
         checkpoint.load(str(path), CFG, KEY)
 
 

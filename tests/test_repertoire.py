@@ -12,9 +12,12 @@ NAMES = {SKIPPED: "skipped", ADDED: "added", REPLACED: "replaced", REJECTED: "re
 K = 3
 
 
-@jax.jit
-def _insert(rep, actions, behaviors, qualities, ok, t_dist):
-    return insert(rep, actions, behaviors, qualities, ok, t_dist, K, num_near=2, chunk=8)
+def _insert_fn(rep, actions, behaviors, qualities, ok, t_dist):
+    # min_prefix 8: a 40-slot repertoire works on prefixes of 8, 10, 20 and 40 slots as it grows.
+    return insert(rep, actions, behaviors, qualities, ok, t_dist, K, num_near=2, chunk=8, min_prefix=8)
+
+
+_insert = jax.jit(_insert_fn)
 
 
 def _batches(draw_seed: int, generations: int, pop: int, spread: float):
@@ -119,3 +122,27 @@ def test_insertion_invariants(seed, capacity, spread):
         assert np.all(status[~ok] == SKIPPED)
         # The archive receives every evaluated candidate that was not added, or the skill it replaced.
         assert int(np.asarray(ins.archived).sum()) == ok.sum() - (status == ADDED).sum()
+
+
+def test_vmapped_insertion_equals_member_by_member():
+    """A batch of repertoires of different sizes (different prefixes, full searches in some members only)."""
+    pop, capacity, t_dist = 12, 40, jnp.float32(0.1)
+    spreads = [0.05, 0.2, 0.05, 0.4]
+    gens = [list(_batches(seed, 5, pop, spread)) for seed, spread in enumerate(spreads)]
+    singles = [Repertoire.empty(capacity, 1, 2, K + 2) for _ in spreads]
+    batch = jax.tree.map(lambda *x: jnp.stack(x), *singles)
+    batched = jax.jit(jax.vmap(_insert_fn, in_axes=(0, 0, 0, 0, 0, None)))
+    for g in range(5):
+        actions = jnp.broadcast_to(jnp.arange(pop, dtype=jnp.float32)[:, None], (len(spreads), pop, 1))
+        b, q, ok = (jnp.asarray(np.stack([gens[s][g][i] for s in range(len(spreads))])) for i in range(3))
+        batch, ins = batched(batch, actions, b, q, ok, t_dist)
+        for s in range(len(spreads)):
+            singles[s], want = _insert(singles[s], actions[s], b[s], q[s], ok[s], t_dist)
+            got = jax.tree.map(lambda x, s=s: x[s], (batch, ins))
+            for name in ("status", "slot", "alive", "victim_slot", "victim_candidate"):
+                np.testing.assert_array_equal(getattr(got[1], name), getattr(want, name), err_msg=name)
+            for name in ("actions", "behaviors", "qualities", "valid", "count"):
+                np.testing.assert_array_equal(getattr(got[0], name), getattr(singles[s], name), err_msg=name)
+            np.testing.assert_array_equal(got[0].neighbours.index, singles[s].neighbours.index)
+            np.testing.assert_allclose(got[0].novelty, singles[s].novelty, rtol=1e-6)
+    assert len({int(c) for c in batch.count}) > 1  # members really had different sizes
