@@ -28,14 +28,23 @@ at every step, finite)`:
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import functools
+import io
 import os
+import sys
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx, rollout
+
+# mujoco.mjx prints "Failed to import warp: ..." (and mujoco_warp) when the optional MuJoCo Warp is not installed;
+# that is expected on a CPU, so the message is held back and anything else it prints passes through.
+with contextlib.redirect_stdout(io.StringIO()) as _printed:
+    from mujoco import mjx, rollout
+sys.stdout.write("".join(line for line in _printed.getvalue().splitlines(keepends=True)
+                         if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp"))))
 
 ASSETS = os.path.join(os.path.dirname(__file__), "assets")
 TABLE_LOW, TABLE_HIGH = (0.3, -0.3), (0.9, 0.3)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mqd_jax.plots import pyplot
-from mqd_jax.results import machine
+from mqd_jax.provenance import machine
 from mqd_jax.results import write_markdown as write
 
 __all__ = ["coverage_at", "machine", "pyplot", "write"]

@@ -34,8 +34,8 @@ import numpy as np
 from flax import struct
 
 from mqd_jax import model, neighbours
-from mqd_jax.config import Config, Params
-from mqd_jax.run import State, get_task
+from mqd_jax.config import Config, Params, check_params
+from mqd_jax.run import State, check_state, get_task
 from mqd_jax.task import Task
 
 METHODS = ("nearest", "linear", "model")
@@ -118,6 +118,8 @@ def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: 
 def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task) -> None:
     if method not in METHODS:
         raise ValueError(f"method={method!r} is invalid: expected one of {METHODS}")
+    # Only what adaptation reads: t_dist may differ from the run's, and with it the coverage grid's stamp.
+    check_state(state, cfg, batch=np.shape(state.repertoire.count), fields=("repertoire", "model"))
     if goals.ndim < 2 or goals.shape[-1] != task.behavior_dim:
         raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
     if isinstance(state.repertoire.count, jax.core.Tracer):
@@ -141,10 +143,16 @@ def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: s
       cfg: the run's config (t_dist, adaptation_step_size, adaptation_steps, k).
       method: "nearest", "linear" or "model".
       params: traced `Params` (t_dist, adaptation_step_size); default `cfg.params()`.
+
+    Raises ValueError for an unknown method, goals not shaped (G, d), an empty
+    repertoire, an untrained model ("model"), a state of another config, and
+    invalid concrete params.
     """
     task = get_task(cfg)
     goals = jnp.asarray(goals, jnp.float32)
     _check(state, goals, cfg, method, task)
+    if params is not None:
+        check_params(params, cfg)
     if goals.ndim != 2:
         raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
     return _adapt(state, goals, key, cfg, method, cfg.params() if params is None else params)

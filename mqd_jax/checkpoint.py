@@ -1,13 +1,15 @@
 """Checkpoints: a run's complete state and its metrics so far, in one file, and resumable runs.
 
-A checkpoint is one msgpack file (`flax.serialization`) holding a format
-version, the run's config (every field), the key the run started from, the
-whole `State` (repertoire, rejected archive, coverage grid, model parameters
-and Adam state, key, generation, evaluation count) and the per-generation
-metrics so far. `save` writes a temporary file and renames it over the old
-one, so a crash leaves either the previous checkpoint or the new one, never
-half of one. `load` refuses, with a ValueError, a file that is not a
-checkpoint or is corrupt, and one written for another config, task or key.
+A checkpoint is one msgpack file (`flax.serialization`): a format version, a
+SHA-256 checksum and a body holding the run's config (every field), the key
+the run started from, the whole `State` (repertoire, rejected archive, coverage
+grid, model parameters and Adam state, key, generation, evaluation count), the
+per-generation metrics so far and the provenance (package versions, git
+revision). `save` writes a temporary file and renames it over the old one, so a
+crash leaves either the previous checkpoint or the new one, never half of one.
+`load` refuses, with a ValueError, a file that is not a checkpoint, is corrupt
+or was altered (checksum), and one written for another config, task or key.
+Files of the older formats 1 and 2 (no checksum) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -17,18 +19,23 @@ every state array carrying a leading [S] axis.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from collections.abc import Callable
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from mqd_jax.config import Config, Params
-from mqd_jax.run import State, init, run_generations
+from mqd_jax import diagnostics
+from mqd_jax.config import Config, Params, check_params
+from mqd_jax.folders import differences, write_atomically
+from mqd_jax.provenance import provenance
+from mqd_jax.run import State, check_state, get_task, init, run_generations
 
-FORMAT = 2
+FORMAT = 3
 Metrics = dict[str, np.ndarray]
 
 
@@ -40,47 +47,53 @@ def _from_format_1(state: dict[str, Any]) -> dict[str, Any]:
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
-    payload = {
-        "format": FORMAT,
+    body = serialization.msgpack_serialize({
         "config": dataclasses.asdict(cfg),
         "key": np.asarray(key),
         "state": serialization.to_state_dict(jax.device_get(state)),
         "metrics": {k: np.asarray(v) for k, v in metrics.items()},
-    }
+        "provenance": provenance(),
+    })
+    payload = {"format": FORMAT, "sha256": hashlib.sha256(body).hexdigest(), "body": body}
     write_atomically(path, serialization.msgpack_serialize(payload))
-
-
-def write_atomically(path: str, data: bytes) -> None:
-    """Writes `data` to a temporary file and renames it over `path`: a crash leaves the old file or the new one."""
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _refuse(path: str, why: str) -> ValueError:
     return ValueError(f"checkpoint {path!r} refused: {why}")
 
 
-def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
-    """The state and metrics saved in `path` by a run of `cfg` started from `key`."""
-    with open(path, "rb") as f:
-        data = f.read()
+def _restore(path: str, data: bytes) -> Any:
     try:
-        payload: Any = serialization.msgpack_restore(data)
+        return serialization.msgpack_restore(data)
     except Exception as e:  # msgpack raises several types on damaged bytes
         raise _refuse(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from e
-    if not isinstance(payload, dict) or payload.get("format") not in (1, FORMAT):
-        raise _refuse(path, f"not an mqd-jax checkpoint of format 1 or {FORMAT}")
-    if payload["format"] == 1:
+
+
+def _read(path: str) -> dict[str, Any]:
+    """The checkpoint's contents (config, key, state, metrics), checksum verified, older formats converted."""
+    try:
+        with open(path, "rb") as f:
+            payload: Any = _restore(path, f.read())
+    except OSError as e:
+        raise _refuse(path, f"cannot read it ({e})") from e
+    if not isinstance(payload, dict) or payload.get("format") not in (1, 2, FORMAT):
+        raise _refuse(path, f"not an mqd-jax checkpoint of format 1 to {FORMAT}")
+    if payload["format"] == FORMAT:
+        body = payload.get("body")
+        if not isinstance(body, bytes) or hashlib.sha256(body).hexdigest() != payload.get("sha256"):
+            raise _refuse(path, "its checksum does not match: the file was altered or damaged")
+        payload = _restore(path, body)
+    elif payload["format"] == 1:
         payload["state"] = _from_format_1(payload["state"])
-    saved = payload["config"]
-    differ = {k: (saved.get(k), v) for k, v in dataclasses.asdict(cfg).items() if saved.get(k) != v}
+    return payload
+
+
+def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
+    """The state and metrics saved in `path` by a run of `cfg` started from `key`."""
+    payload = _read(path)
+    differ = differences(payload["config"], dataclasses.asdict(cfg))
     if differ:
-        listed = ", ".join(f"{k}: saved {a!r}, now {b!r}" for k, (a, b) in sorted(differ.items()))
-        raise _refuse(path, f"it was written with another config ({listed})")
+        raise _refuse(path, f"it was written with another config ({differ})")
     if not np.array_equal(payload["key"], np.asarray(key)):
         raise _refuse(path, "it was written by a run started from another key")
     key = np.asarray(key)
@@ -98,6 +111,19 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     return state, dict(payload["metrics"])
 
 
+def compile_chunk(state: State, cfg: Config, params: Params, every: int) -> Callable[..., tuple[State, Metrics]]:
+    """The compiled program of one chunk: `(state, params, todo) -> (state, metrics [every])`.
+
+    One program of `min(every, cfg.max_generations)` generations, of which the
+    first `todo` run, so a shorter last chunk needs no second compile. Compiled
+    ahead of time, so the caller can time (or announce) the compilation.
+    """
+    length = min(every, cfg.max_generations)
+    program = jax.jit(run_generations, static_argnums=(1, 3))
+    compiled = program.lower(state, cfg, params, length, jnp.int32(length)).compile()
+    return lambda s, p, todo: compiled(s, p, jnp.int32(todo))
+
+
 def run_with_checkpoints(
     key: jax.Array,
     cfg: Config,
@@ -106,27 +132,41 @@ def run_with_checkpoints(
     params: Params | None = None,
     resume: bool = True,
     on_chunk: Callable[[State, Metrics], None] | None = None,
+    on_start: Callable[[State, Metrics], None] | None = None,
+    on_compiled: Callable[[], None] | None = None,
 ) -> tuple[State, Metrics]:
     """`run_mqd` in chunks of `every` generations, saving a checkpoint at `path` after each.
 
     With `resume` and a checkpoint at `path`, continues from it (it must come
     from the same config and key); the result is identical to an
-    uninterrupted `run_mqd(key, cfg, params)`. `on_chunk(state, metrics)` is
-    called after each chunk with the chunk's metrics (for progress output).
+    uninterrupted `run_mqd(key, cfg, params)`. `on_start(state, metrics)` is
+    called before compiling with the state and metrics it starts from (empty
+    unless resumed), `on_compiled()` once compiled, `on_chunk(state, metrics)`
+    after each chunk with the chunk's metrics (for progress output). Warns
+    like `run_mqd` at the end.
     """
-    if not (isinstance(every, int) and every >= 1):
+    if not (isinstance(every, int) and not isinstance(every, bool) and every >= 1):
         raise ValueError(f"every={every!r} is invalid: expected an int >= 1")
     params = cfg.params() if params is None else params
+    check_params(params, cfg)
     if resume and os.path.exists(path):
         state, metrics = load(path, cfg, key)
     else:
         state, metrics = init(key, cfg), {}
-    step = jax.jit(run_generations, static_argnums=(1, 3))
+    check_state(state, cfg)
+    if on_start is not None:
+        on_start(state, metrics)
+    if int(state.generation) < cfg.max_generations:
+        step = compile_chunk(state, cfg, params, every)
+        if on_compiled is not None:
+            on_compiled()
     while (done := int(state.generation)) < cfg.max_generations:
-        state, chunk = step(state, cfg, params, min(every, cfg.max_generations - done))
-        chunk = jax.tree.map(np.asarray, chunk)
+        todo = min(every, cfg.max_generations - done)
+        state, chunk = step(state, params, todo)
+        chunk = {k: np.asarray(v)[:todo] for k, v in chunk.items()}
         metrics = {k: np.concatenate([metrics[k], v]) if k in metrics else v for k, v in chunk.items()}
         save(path, state, metrics, cfg, key)
         if on_chunk is not None:
             on_chunk(state, chunk)
+    diagnostics.warn(metrics, cfg, get_task(cfg))
     return state, metrics

@@ -6,7 +6,11 @@
     mqd plot  DIR
 
 `run` and `sweep` print a progress line per chunk of generations and a final
-summary; every Config field has a flag (`--t-nov 0.05`, `--budgeted`).
+summary; every Config field has a flag (`--t-nov 0.05`, `--budgeted`). A
+results folder belongs to one config (`mqd_jax.folders`): another config is
+refused unless `--overwrite`, and one command at a time writes it. Compiled
+programs are kept in a persistent cache (`compilation_cache`), so a second
+start of the same config skips compilation.
 """
 
 from __future__ import annotations
@@ -15,37 +19,80 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
-import warnings
 from collections.abc import Callable
 
 import jax
 import numpy as np
 
 import envs
-from mqd_jax import adaptation, checkpoint, plots, results, sweep
+from mqd_jax import adaptation, checkpoint, folders, plots, results, sweep
 from mqd_jax.config import ALGORITHMS, Config
-from mqd_jax.run import get_task
+from mqd_jax.provenance import provenance
+from mqd_jax.run import State, get_task
 
 PRESETS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
 # Short flags kept from the first versions of the CLI.
 _ALIASES = {"max_generations": ["--generations"], "population_size": ["--population"]}
 _PER_TASK = ("task", "algorithm")  # `sweep` takes these as lists
+RUN_FILES = ("metrics.json", "repertoire.npz", "run.png", "checkpoint.msgpack")
+_RUN_DEFAULTS = {"max_generations": 100}  # the main job is a short run
+CACHE_ENV = "MQD_JAX_CACHE_DIR"
 
 
-def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (), preset: str = "paper-2d") -> None:
-    """One flag per Config field (`--t-nov 0.05`, `--budgeted/--no-budgeted`); unset flags keep the preset's value."""
+def compilation_cache(enabled: bool) -> str | None:
+    """Turns on JAX's persistent compilation cache; returns its folder (None if off).
+
+    The folder: $MQD_JAX_CACHE_DIR, else $XDG_CACHE_HOME/mqd-jax (default
+    ~/.cache/mqd-jax). A cache folder the user gave JAX (JAX_COMPILATION_CACHE_DIR)
+    is kept. `--no-cache` or MQD_JAX_CACHE_DIR=off turn it off.
+    """
+    folder = os.environ.get(CACHE_ENV)
+    if not enabled or folder in ("0", "off", ""):
+        return None
+    if jax.config.jax_compilation_cache_dir:
+        return jax.config.jax_compilation_cache_dir
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    folder = folder or os.path.join(base, "mqd-jax")
+    jax.config.update("jax_compilation_cache_dir", folder)
+    # Every program, however small or fast to compile: a run compiles several.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return folder
+
+
+def _task_names() -> str:
+    return ", ".join(envs.registered_tasks()) + ", or a plugin package.module:factory"
+
+
+def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (), preset: str = "paper-2d",
+                      defaults: dict | None = None) -> None:
+    """One flag per Config field (`--t-nov 0.05`, `--budgeted/--no-budgeted`); unset flags keep the preset's value.
+
+    The help of each flag shows the value it takes when not given (the preset's, after `defaults`).
+    """
     choices = sorted(PRESETS) + ([] if preset in PRESETS else [preset])
-    parser.add_argument("--preset", choices=choices, default=preset)
+    parser.add_argument("--preset", choices=choices, default=preset,
+                        help="Table II's column the unset flags take: paper-2d, paper-robot" +
+                             (", auto: paper-robot for the robot tasks, else paper-2d" if preset == "auto" else "") +
+                             " (default: %(default)s)")
+    base = PRESETS[preset](**(defaults or {})) if preset in PRESETS else None
+    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(ALGORITHMS)}",
+                "budgeted": "M-QD: roll out the pool_factor x population candidates the model ranks best "
+                            "(instead of the paper's threshold filter)",
+                "physics_backend": "robot tasks: auto, mujoco (C MuJoCo) or mjx"}
     for field in dataclasses.fields(Config):
         if field.name in skip:
             continue
         flags = ["--" + field.name.replace("_", "-"), *_ALIASES.get(field.name, [])]
+        default = "the preset's for the task" if base is None else repr(getattr(base, field.name))
+        text = f"{specific.get(field.name, 'Config.' + field.name)} (default: {default})"
         if isinstance(field.default, bool):
-            parser.add_argument(*flags, dest=field.name, action=argparse.BooleanOptionalAction, default=None)
+            parser.add_argument(*flags, dest=field.name, action=argparse.BooleanOptionalAction, default=None,
+                                help=text)
         else:
-            parser.add_argument(*flags, dest=field.name, type=type(field.default), default=None,
-                                help=f"Config.{field.name} (default: the preset's, {field.default!r} in Config)")
+            parser.add_argument(*flags, dest=field.name, type=type(field.default), default=None, help=text)
 
 
 def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str) -> Config:
@@ -57,155 +104,249 @@ def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str
     return preset(**{**(defaults or {}), **given})
 
 
-def _progress(label: str, total: int) -> Callable[[int, dict[str, np.ndarray]], None]:
-    """A progress printer for chunks of metrics [generations] (one run) or [runs, generations] (a sweep)."""
-    start, discarded = time.perf_counter(), [0]
+def _positive(text: str) -> int:
+    """argparse type: an int >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is invalid: expected an int >= 1")
+    return value
 
-    def show(done: int, m: dict[str, np.ndarray]) -> None:
+
+class _Progress:
+    """Progress lines for chunks of metrics [generations] (one run) or [runs, generations] (a sweep).
+
+    Generations per second count from the end of compilation; `discarded`
+    continues from the resumed metrics.
+    """
+
+    def __init__(self, label: str, total: int) -> None:
+        self.label, self.total = label, total
+        self.done, self.discarded, self.since, self.start = 0, 0, 0, time.perf_counter()
+
+    def resume(self, done: int, metrics: dict[str, np.ndarray]) -> None:
+        self.done = self.since = done
+        if metrics:
+            self.discarded = int(np.atleast_2d(metrics["discarded"]).sum(1).mean())
+
+    def compiling(self, cache: str | None) -> None:
+        where = f"kept in {cache} for later starts" if cache else "no compilation cache (--no-cache)"
+        print(f"{self.label}compiling (once per config and machine; {where}) ...", flush=True)
+        self.start = time.perf_counter()
+
+    def compiled(self) -> None:
+        print(f"{self.label}compiled in {time.perf_counter() - self.start:.1f} s", flush=True)
+        self.start, self.since = time.perf_counter(), self.done
+
+    def chunk(self, done: int, m: dict[str, np.ndarray]) -> None:
+        self.done = done
         cov = np.atleast_2d(m["coverage"])[:, -1]
         spread = f" +- {cov.std():.3f}" if len(cov) > 1 else ""
-        discarded[0] += int(np.atleast_2d(m["discarded"]).sum(1).mean())  # per run
+        self.discarded += int(np.atleast_2d(m["discarded"]).sum(1).mean())  # per run
         mean = lambda name: np.atleast_2d(m[name])[:, -1].mean()  # noqa: E731
-        print(f"{label}generation {done:4d}/{total}  coverage {cov.mean():.3f}{spread}  "
+        rate = (done - self.since) / max(time.perf_counter() - self.start, 1e-9)
+        print(f"{self.label}generation {done:4d}/{self.total}  coverage {cov.mean():.3f}{spread}  "
               f"size {mean('repertoire_size'):6.0f}  evaluations {mean('num_evaluations'):7.0f}  "
-              f"discarded {discarded[0]:6d}  {done / (time.perf_counter() - start):.1f} gen/s", flush=True)
-
-    return show
+              f"discarded {self.discarded:6d}  {rate:.1f} gen/s", flush=True)
 
 
-def _warn_dropped(metrics: dict[str, np.ndarray], cfg: Config) -> None:
-    dropped = int(metrics["dropped_full"].sum())
-    if dropped:
-        warnings.warn(f"{cfg.task} {cfg.algorithm}: {dropped} new niches did not fit: raise --capacity above "
-                      f"{cfg.capacity}", stacklevel=1)
+def _say_removed(paths: list[str], why: str) -> None:
+    if paths:
+        print(f"{why}: removed {', '.join(os.path.basename(p) for p in paths)}")
 
 
 def _run(args: argparse.Namespace) -> None:
-    # The main job is a short run: 100 generations unless told otherwise.
-    cfg = _config(args, defaults={"max_generations": 100})
-    os.makedirs(args.out, exist_ok=True)
+    cfg = _config(args, defaults=_RUN_DEFAULTS)
+    key = jax.random.PRNGKey(args.seed)
     path = os.path.join(args.out, "checkpoint.msgpack")
-    if os.path.exists(path) and not args.resume:
-        print(f"starting afresh; pass --resume to continue the checkpoint in {path}")
-    start = time.perf_counter()
-    show = _progress("", cfg.max_generations)
-    state, metrics = checkpoint.run_with_checkpoints(
-        jax.random.PRNGKey(args.seed), cfg, path, every=max(1, args.chunk), resume=args.resume,
-        on_chunk=lambda s, m: show(int(s.generation), m))
-    _warn_dropped(metrics, cfg)
+    progress = _Progress("", cfg.max_generations)
+    args.interrupted = lambda: (f"interrupted at generation {progress.done}; " + (
+        "the same command with --resume continues from there" if progress.done else "nothing was saved"))
+    with folders.lock(args.out) as leftovers:
+        _say_removed(leftovers, "left by an interrupted writer")
+        if args.resume and not os.path.exists(path):
+            raise ValueError(f"--resume: {args.out!r} holds no checkpoint; run without --resume to start")
+        _say_removed(folders.claim(args.out, "run", {"config": dataclasses.asdict(cfg), "seed": args.seed},
+                                   RUN_FILES, args.overwrite), "--overwrite")
+        if os.path.exists(path) and not args.resume:
+            print(f"starting afresh (pass --resume to continue the checkpoint in {args.out})")
+
+        def start(state: State, metrics: dict[str, np.ndarray]) -> None:
+            if metrics:
+                print(f"resuming at generation {int(state.generation)} of {cfg.max_generations} from {path}")
+            progress.resume(int(state.generation), metrics)
+            if int(state.generation) < cfg.max_generations:
+                progress.compiling(args.cache)
+
+        began = time.perf_counter()
+        state, metrics = checkpoint.run_with_checkpoints(
+            key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
+            on_compiled=progress.compiled, on_chunk=lambda s, m: progress.chunk(int(s.generation), m))
+        meta = {"config": dataclasses.asdict(cfg), "seed": args.seed, "key": np.asarray(key),
+                "provenance": provenance()}
+        results.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
+        n = int(state.repertoire.count)
+        rep = jax.device_get(state.repertoire)
+        description = json.dumps({**meta, "key": meta["key"].tolist()})
+        folders.write_npz(os.path.join(args.out, "repertoire.npz"), actions=rep.actions[:n],
+                          behaviors=rep.behaviors[:n], qualities=rep.qualities[:n], meta=np.asarray(description))
+        title = f"{cfg.task}, {cfg.algorithm}, seed {args.seed}, {cfg.max_generations} generations"
+        figure = plots.run_figure(get_task(cfg), metrics, rep.behaviors[:n], os.path.join(args.out, "run.png"),
+                                  title, description)
+    written = [f for f in RUN_FILES if f != "run.png" or figure]
     print(f"done: coverage {metrics['coverage'][-1]:.3f}, mean quality {metrics['mean_quality'][-1]:.3f}, "
-          f"{int(state.repertoire.count)} skills, {int(metrics['num_evaluations'][-1])} evaluations, "
-          f"{time.perf_counter() - start:.1f} s (compilation included)")
-    results.write_json(os.path.join(args.out, "metrics.json"), metrics)
-    n = int(state.repertoire.count)
-    rep = jax.device_get(state.repertoire)
-    np.savez(os.path.join(args.out, "repertoire.npz"), actions=rep.actions[:n], behaviors=rep.behaviors[:n],
-             qualities=rep.qualities[:n])
-    plots.run_figure(get_task(cfg), metrics, rep.behaviors[:n], os.path.join(args.out, "run.png"))
+          f"{n} skills, {int(metrics['num_evaluations'][-1])} evaluations, "
+          f"{time.perf_counter() - began:.1f} s (compilation included); wrote "
+          + ", ".join(os.path.join(args.out, f) for f in written))
 
 
 def _sweep(args: argparse.Namespace) -> None:
     configs = [_config(args, task=t, algorithm=a) for t in args.tasks for a in args.algorithms]
-    for cfg in configs:
-        seeds = args.seeds if args.seeds is not None else 10 if cfg.task in envs.ROBOT_TASKS else 25
-        keys = np.asarray(sweep.seed_keys(seeds))
-        label = f"{cfg.task} {cfg.algorithm}, {seeds} seeds: "
-        if results.is_done(args.out, cfg, keys):
-            print(f"{label}already in {args.out}, skipped")
-            continue
-        start = time.perf_counter()
-        states, metrics = sweep.run_batch(cfg, keys, chunk=args.chunk, on_chunk=_progress(label, cfg.max_generations))
-        wall = time.perf_counter() - start
-        _warn_dropped(metrics, cfg)
-        print(f"{label}done: coverage {metrics['coverage'][:, -1].mean():.3f} +- {metrics['coverage'][:, -1].std():.3f}"
-              f", {metrics['num_evaluations'][:, -1].mean():.0f} evaluations per run, {wall:.1f} s "
-              f"(compilation included) on {jax.device_count()} device(s)", flush=True)
-        results.save_runs(args.out, cfg, keys, states, metrics, wall)
-    _plot(args.out)
+    batches = [(cfg, np.asarray(sweep.seed_keys(args.seeds or (10 if cfg.task in envs.ROBOT_TASKS else 25))))
+               for cfg in configs]
+    where = ["before the first batch"]
+    args.interrupted = lambda: (f"interrupted {where[0]}; finished batches are kept in {args.out}: the same "
+                                "command continues with the next one")
+    with folders.lock(args.out) as leftovers:
+        _say_removed(leftovers, "left by an interrupted writer")
+        _say_removed(folders.claim(args.out, "sweep", {}, results.FILES, args.overwrite), "--overwrite")
+        # Every conflict is found before anything runs, not after hours of other batches.
+        clash = {s: d for cfg, keys in batches for s, d in results.conflicts(args.out, cfg, keys).items()}
+        if clash and not args.overwrite:
+            raise ValueError(f"{args.out!r} refused: " + "; ".join(
+                f"{os.path.basename(s)} differs ({d})" for s, d in clash.items())
+                + ". Pass --overwrite to replace those batches, or write to another folder")
+        results.remove_batches(args.out, list(clash))
+        _say_removed([s + ".json" for s in clash], "--overwrite")
+        for cfg, keys in batches:
+            label = f"{cfg.task} {cfg.algorithm}, {len(keys)} seeds: "
+            if results.is_done(args.out, cfg, keys):
+                print(f"{label}already in {args.out}, skipped")
+                continue
+            progress = _Progress(label, cfg.max_generations)
+            where[0] = f"in {label.rstrip(': ')}"
+            progress.compiling(args.cache)
+            start = time.perf_counter()
+            states, metrics = sweep.run_batch(cfg, keys, chunk=args.chunk, on_chunk=progress.chunk,
+                                              on_compiled=progress.compiled)
+            wall = time.perf_counter() - start
+            print(f"{label}done: coverage {metrics['coverage'][:, -1].mean():.3f} +- "
+                  f"{metrics['coverage'][:, -1].std():.3f}, {metrics['num_evaluations'][:, -1].mean():.0f} "
+                  f"evaluations per run, {wall:.1f} s (compilation included) on {jax.device_count()} device(s)",
+                  flush=True)
+            results.save_runs(args.out, cfg, keys, states, metrics, wall)
+        where[0] = "while tabulating"
+        _plot(args.out)
 
 
 def _adapt(args: argparse.Namespace) -> None:
-    path = os.path.join(args.dir, "adaptation.json")
-    found: dict = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            found = json.load(f)
-    tasks = args.tasks or [t for t, by in results.load_runs(args.dir).items() if "mqd" in by]
-    for task in tasks:
-        cfg, keys, states = results.load_states(args.dir, task)
-        goals = np.stack([adaptation.reachable_goals(get_task(cfg), args.goals, np.random.default_rng(i))
-                          for i in range(len(keys))])
-        rollout_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys)
-        found[task] = {}
-        for method in adaptation.METHODS:
-            start = time.perf_counter()
-            out = jax.device_get(adaptation.adapt_batch(states, goals, rollout_keys, cfg, method))
-            found[task][method] = {"error": out.errors.mean(1), "steps": out.steps.mean(1),
+    path = os.path.join(args.dir, results.ADAPTATION)
+    with folders.lock(args.dir):
+        found = folders.read_json(path) if os.path.exists(path) else {}
+        tasks = args.tasks or [t for t, by in results.load_runs(args.dir).items() if "mqd" in by]
+        for task in tasks:
+            cfg, keys, states = results.load_states(args.dir, task)
+            goals = np.stack([adaptation.reachable_goals(get_task(cfg), args.goals, np.random.default_rng(i))
+                              for i in range(len(keys))])
+            rollout_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys)
+            methods = {}
+            for method in adaptation.METHODS:
+                start = time.perf_counter()
+                out = jax.device_get(adaptation.adapt_batch(states, goals, rollout_keys, cfg, method))
+                methods[method] = {"error": out.errors.mean(1), "steps": out.steps.mean(1),
                                    "reached": (out.errors < cfg.t_dist).mean(1), "goals": args.goals,
                                    "wall_s": time.perf_counter() - start}
-            print(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps {out.steps.mean():.2f}, "
-                  f"{found[task][method]['wall_s']:.1f} s", flush=True)
-        results.write_json(path, found)
-    _plot(args.dir)
+                print(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps {out.steps.mean():.2f}, "
+                      f"{methods[method]['wall_s']:.1f} s", flush=True)
+            found[task] = {"source": results.source(args.dir, task), "methods": methods}
+            results.remove_derived(args.dir)
+            results.write_json(path, found)
+        _plot(args.dir)
 
 
 def _plot(out: str) -> None:
-    """Tables (markdown) and figures of everything in the results folder `out`."""
+    """Tables (markdown) and figures of everything in the results folder `out` (call holding its lock)."""
     runs = results.load_runs(out)
+    results.remove_derived(out)
     results.write_markdown(results.tables(runs), os.path.join(out, "table1.md"))
     for task, by_alg in runs.items():
-        plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg, os.path.join(out, f"fig2_{task}.png"))
-    path = os.path.join(out, "adaptation.json")
-    if os.path.exists(path):
-        with open(path) as f:
-            found = json.load(f)
-        found = {task: found[task] for task in sorted(found, key=results.task_order)}
+        plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg,
+                      os.path.join(out, f"fig2_{results.file_name(task)}.png"))
+    found, stale = results.adaptation(out)
+    if stale:
+        print(f"left out the adaptation results of {', '.join(stale)}: their M-QD runs changed since `mqd adapt`; "
+              f"run `mqd adapt {out} --tasks {' '.join(stale)}` again")
+    if found:
         results.write_markdown(results.adaptation_table(found), os.path.join(out, "adaptation.md"))
         plots.adaptation_figure(found, "error", "behavioral error", os.path.join(out, "fig3_adaptation_error.png"))
         plots.adaptation_figure(found, "steps", "adaptation steps", os.path.join(out, "fig4_adaptation_steps.png"))
 
 
-def main(argv: list[str] | None = None) -> None:
+def _locked_plot(args: argparse.Namespace) -> None:
+    with folders.lock(args.dir):
+        _plot(args.dir)
+
+
+def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
     parser = argparse.ArgumentParser(prog="mqd", description="Model-Based Quality-Diversity search in JAX")
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="run one search and write metrics, repertoire and a plot")
-    _add_config_flags(run)
-    run.add_argument("--seed", type=int, default=0)
-    run.add_argument("--chunk", type=int, default=25,
-                     help="generations per compiled chunk: one progress line and one checkpoint each")
+    cache = argparse.ArgumentParser(add_help=False)
+    cache.add_argument("--no-cache", dest="cache", action="store_false",
+                       help=f"do not keep compiled programs in the persistent cache (${CACHE_ENV}, default "
+                            "~/.cache/mqd-jax)")
+    writes = argparse.ArgumentParser(add_help=False)
+    writes.add_argument("--overwrite", action="store_true",
+                        help="replace results of another config in the folder (otherwise refused)")
+
+    run = sub.add_parser("run", parents=[cache, writes], help="run one search and write metrics, repertoire and a plot")
+    _add_config_flags(run, defaults=_RUN_DEFAULTS)
+    run.add_argument("--seed", type=int, default=0, help="the run's key is PRNGKey(seed) (default: %(default)s)")
+    run.add_argument("--chunk", type=_positive, default=25,
+                     help="generations per chunk: one progress line and one checkpoint each (default: %(default)s)")
     run.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
-    run.add_argument("--out", default="results/run")
+    run.add_argument("--out", default="results/run", help="results folder (default: %(default)s)")
 
-    sw = sub.add_parser("sweep", help="seed sweeps (vmapped, sharded over devices): metrics, Table I, Figure 2")
+    sw = sub.add_parser("sweep", parents=[cache, writes],
+                        help="seed sweeps (vmapped, sharded over devices): metrics, Table I, Figure 2")
     _add_config_flags(sw, skip=_PER_TASK, preset="auto")
-    sw.add_argument("--tasks", nargs="+", default=list(envs.registered_tasks()), metavar="TASK")
-    sw.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS), choices=ALGORITHMS)
-    sw.add_argument("--seeds", type=int, default=None, help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")
-    sw.add_argument("--chunk", type=int, default=25, help="generations per compiled chunk (one progress line each)")
+    sw.add_argument("--tasks", nargs="+", default=list(envs.registered_tasks()), metavar="TASK",
+                    help=f"tasks to sweep: {_task_names()} (default: every registered task)")
+    sw.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS), choices=ALGORITHMS,
+                    help="default: all three")
+    sw.add_argument("--seeds", type=_positive, default=None,
+                    help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")
+    sw.add_argument("--chunk", type=_positive, default=25,
+                    help="generations per compiled chunk, one progress line each (default: %(default)s)")
     sw.add_argument("--out", default="results/sweep",
-                    help="results folder; batches already in it (same config and seeds) are skipped")
+                    help="results folder; batches already in it (same config and seeds) are skipped "
+                         "(default: %(default)s)")
 
-    ad = sub.add_parser("adapt", help="adapt a sweep's final M-QD repertoires toward random reachable goals")
+    ad = sub.add_parser("adapt", parents=[cache], help="adapt a sweep's final M-QD repertoires toward random goals")
     ad.add_argument("dir", help="a results folder of `mqd sweep`")
     ad.add_argument("--tasks", nargs="+", default=None, help="default: every task with M-QD runs in DIR")
-    ad.add_argument("--goals", type=int, default=1000, help="goals per repertoire (the paper's 1000)")
+    ad.add_argument("--goals", type=_positive, default=1000,
+                    help="goals per repertoire (default: the paper's %(default)s)")
 
     pl = sub.add_parser("plot", help="tables and figures of a results folder")
     pl.add_argument("dir")
+    return parser, {"run": run, "sweep": sw, "adapt": ad, "plot": pl}
+
+
+_COMMANDS: dict[str, Callable[[argparse.Namespace], None]] = {
+    "run": _run, "sweep": _sweep, "adapt": _adapt, "plot": _locked_plot}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser, commands = _parser()
     args = parser.parse_args(argv)
+    args.cache = compilation_cache(getattr(args, "cache", False))
+    args.interrupted = lambda: "interrupted"
     try:
-        if args.command == "run":
-            _run(args)
-        elif args.command == "sweep":
-            _sweep(args)
-        elif args.command == "adapt":
-            if args.goals < 1:
-                raise ValueError(f"--goals {args.goals} is invalid: expected an int >= 1")
-            _adapt(args)
-        else:
-            _plot(args.dir)
-    except ValueError as e:  # invalid configuration or input: say what, not a traceback
-        parser.error(str(e))
+        _COMMANDS[args.command](args)
+    except ValueError as e:  # invalid configuration or input: say what, with the subcommand's usage, no traceback
+        commands[args.command].error(str(e))
+    except KeyboardInterrupt:
+        print(f"\n{args.interrupted()}", file=sys.stderr)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

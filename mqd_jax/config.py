@@ -16,7 +16,9 @@ import dataclasses
 import math
 from typing import Any
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 ALGORITHMS = ("mqd", "qd", "random")
@@ -34,6 +36,36 @@ class Params:
     iso_sigma: jnp.ndarray
     line_sigma: jnp.ndarray
     adaptation_step_size: jnp.ndarray
+
+
+# The allowed range of each traced parameter: (name, lowest, whether the lowest is allowed); t_qua: any finite.
+_PARAM_RANGES = (("t_dist", 0.0, False), ("learning_rate", 0.0, False), ("adaptation_step_size", 0.0, False),
+                 ("t_nov", 0.0, True), ("iso_sigma", 0.0, True), ("line_sigma", 0.0, True),
+                 ("t_qua", -math.inf, False))
+
+
+def check_params(params: Params, cfg: Config) -> None:
+    """Raises ValueError naming the field if a concrete `Params` value is NaN, infinite or out of range.
+
+    Checks every element (batched Params too) with the same rules as `Config`, and
+    `t_dist <= cfg.t_dist` (the coverage grid stamps disks of at most the config's
+    radius). Traced values (inside a user's `jit` or `vmap`) cannot be read and are
+    not checked.
+    """
+    for name, lowest, inclusive in _PARAM_RANGES:
+        value = getattr(params, name)
+        if isinstance(value, jax.core.Tracer):
+            continue
+        v = np.asarray(value, np.float64)
+        bad = ~np.isfinite(v) | ((v < lowest) if inclusive else (v <= lowest))
+        if name == "t_dist":
+            bad |= v > np.float32(cfg.t_dist)
+        if bad.any():
+            allowed = "any finite float" if name == "t_qua" else f"a finite float {'>=' if inclusive else '>'} 0"
+            if name == "t_dist":
+                allowed += f" and <= Config.t_dist ({cfg.t_dist}; the coverage grid's largest disk)"
+            first = float(v.ravel()[np.argmax(bad.ravel())])
+            raise ValueError(f"Params.{name}={first!r} is invalid: expected {allowed}")
 
 
 def _check(ok: bool, name: str, value: Any, allowed: str) -> None:
@@ -97,11 +129,16 @@ class Config:
     physics_backend: str = "auto"
 
     def __post_init__(self) -> None:
-        from envs import registered_tasks
+        from envs import is_task, registered_tasks
 
-        tasks = registered_tasks()
-        _check(isinstance(self.task, str) and self.task in tasks, "task", self.task,
-               f"one of the registered tasks {sorted(tasks)}")
+        # numpy scalars (np.int64(10), np.float32(0.02)) become the Python values they hold, so that
+        # configs compare, hash and serialize the same however a value was given.
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, np.generic):
+                object.__setattr__(self, field.name, value.item())
+        _check(isinstance(self.task, str) and is_task(self.task), "task", self.task,
+               f"one of the registered tasks {sorted(registered_tasks())} or a plugin 'package.module:factory'")
         _check(self.algorithm in ALGORITHMS, "algorithm", self.algorithm, f"one of {ALGORITHMS}")
         for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1),
                          ("batch_size", 1), ("num_batches", 1), ("warmup_samples", 0),

@@ -32,10 +32,11 @@ def pyplot() -> Any:
     return plt
 
 
-def save(fig: Any, path: str) -> str:
-    """Writes `fig` to `path` (PNG, 100 dpi) and says so."""
+def save(fig: Any, path: str, description: str | None = None) -> str:
+    """Writes `fig` to `path` (PNG, 100 dpi; `description` goes into the PNG's Description text) and says so."""
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, metadata={"Description": description} if description else None)
+    pyplot().close(fig)  # pyplot keeps every open figure alive: a long sweep would hold them all
     print(f"wrote {path}")
     return path
 
@@ -60,16 +61,18 @@ def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str) -> None:
     ax.legend(loc="upper right", fontsize=6, framealpha=0.7)
 
 
-def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray, path: str) -> str | None:
-    """One run: coverage against evaluations, and the final repertoire over the layout."""
+def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray, path: str, title: str,
+               description: str | None = None) -> str | None:
+    """One run: coverage against evaluations, and the final repertoire over the layout, under `title`."""
     plt = pyplot()
     if plt is None:
         return None
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4.5))
+    fig.suptitle(title)
     ax1.plot(metrics["num_evaluations"], metrics["coverage"])
     ax1.set(xlabel="evaluations", ylabel="coverage")
     repertoire(ax2, task, behaviors, "final repertoire")
-    return save(fig, path)
+    return save(fig, path, description)
 
 
 def figure2(task: Task, name: str, runs: dict[str, Runs], path: str) -> str | None:
@@ -104,5 +107,6 @@ def adaptation_figure(results: dict[str, dict[str, dict[str, list[float]]]], met
         ax.bar(np.arange(len(results)) + j * width, means, width, yerr=stds, capsize=3, label=method)
     ax.set_xticks(np.arange(len(results)) + width * (len(METHODS) - 1) / 2, list(results))
     ax.set_ylabel(label)
-    ax.legend()
+    # Outside the axes, so that no bar or error bar is hidden behind it.
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
     return save(fig, path)

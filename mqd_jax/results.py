@@ -3,26 +3,34 @@
 One folder per sweep. For every task and algorithm run:
 
 * `<task>_<algorithm>.json`: the config (every field), the seed keys, wall
-  time, machine, and every metric per seed and generation (`metrics[name]`:
-  [seeds][generations]; NaN written as null).
+  time, machine, provenance (versions, git revision) and every metric per seed
+  and generation (`metrics[name]`: [seeds][generations]; NaN written as null).
 * `<task>_<algorithm>.npz`: the final repertoires: `count` [S], `actions`
   [S, M, n], `behaviors` [S, M, d], `qualities` [S, M] (M: the largest count;
-  rows past a seed's count are padding).
+  rows past a seed's count are padding), and `meta` (the same config, keys and
+  provenance, as a JSON string).
 * `<task>_mqd.msgpack` (M-QD only): the final states, as a checkpoint
   (`mqd_jax.checkpoint`) with keys [S, 2]: what `mqd adapt` adapts.
 
-`mqd adapt` adds `adaptation.json` ({task: {method: {"error", "steps",
-"reached"}: one value per repertoire}}). Tables are markdown, built from these
-files only, so a folder can be copied and re-tabulated anywhere.
+`mqd adapt` adds `adaptation.json` ({task: {"source": the SHA-256 of the
+`<task>_mqd.msgpack` it adapted, "methods": {method: {"error", "steps",
+"reached"}: one value per repertoire}}}). Tables and figures (`DERIVED`) are
+markdown and PNG built from these files only, so a folder can be copied and
+re-tabulated anywhere.
+
+A folder never mixes configs: the batches of one task share their config (but
+for the algorithm) and their seed keys (`conflicts` finds batches that do not;
+`load_runs` refuses such a folder), and adaptation results of M-QD runs that
+have since changed are left out of the tables and figures (`adaptation`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import glob
+import hashlib
 import json
 import os
-import platform
 from collections.abc import Callable
 from typing import Any
 
@@ -32,6 +40,8 @@ import numpy as np
 from envs import registered_tasks
 from mqd_jax import checkpoint
 from mqd_jax.config import ALGORITHMS, Config
+from mqd_jax.folders import differences, read_json, write_atomically, write_npz
+from mqd_jax.provenance import machine, provenance
 from mqd_jax.run import State
 from mqd_jax.stats import mann_whitney
 
@@ -44,12 +54,10 @@ PAPER_COVERAGE = {
     "place": {"mqd": (0.639, 0.034), "qd": (0.524, 0.009), "random": (0.349, 0.001)},
 }
 NAMES = {"mqd": "M-QD", "qd": "QD", "random": "RANDOM"}
-
-
-def machine() -> str:
-    """The machine figures were measured on, e.g. 'x86_64, 2 CPU cores, jax 0.10.2 on cpu (cpu) x 1'."""
-    return (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()} "
-            f"({jax.devices()[0].device_kind}) x {jax.device_count()}")
+# The files a sweep folder holds (glob patterns, for `folders.claim`), and those made from them.
+FILES = ("*_*.json", "*_*.npz", "*_mqd.msgpack", "adaptation.json")
+DERIVED = ("table1.md", "adaptation.md", "fig2_*.png", "fig3_adaptation_error.png", "fig4_adaptation_steps.png")
+ADAPTATION = "adaptation.json"
 
 
 def write_markdown(lines: list[str], path: str) -> None:
@@ -61,8 +69,13 @@ def write_markdown(lines: list[str], path: str) -> None:
         f.write(text + "\n")
 
 
+def file_name(task: str) -> str:
+    """`task` as it appears in file names (plugin names "package.module:factory" become "package.module.factory")."""
+    return task.replace(":", ".").replace(os.sep, ".")
+
+
 def _stem(out: str, task: str, algorithm: str) -> str:
-    return os.path.join(out, f"{task}_{algorithm}")
+    return os.path.join(out, f"{file_name(task)}_{algorithm}")
 
 
 def write_json(path: str, payload: Any) -> None:
@@ -78,7 +91,49 @@ def write_json(path: str, payload: Any) -> None:
             return None
         return x.item() if isinstance(x, np.generic) else x
 
-    checkpoint.write_atomically(path, json.dumps(strict(payload)).encode())
+    write_atomically(path, json.dumps(strict(payload)).encode())
+
+
+def _batches(out: str) -> list[tuple[str, dict[str, Any]]]:
+    """(stem, saved JSON) of every complete batch in `out` (a JSON with its npz beside it)."""
+    found = []
+    for path in sorted(glob.glob(os.path.join(glob.escape(out), "*_*.json"))):
+        if os.path.exists(path[:-len(".json")] + ".npz"):
+            saved = read_json(path)
+            if not (isinstance(saved, dict) and {"config", "keys", "metrics"} <= set(saved)):
+                raise ValueError(f"{path!r} is not a batch of `mqd sweep` (no config, keys or metrics)")
+            found.append((path[:-len(".json")], saved))
+    return found
+
+
+def _comparable(cfg: dict[str, Any]) -> dict[str, Any]:
+    """The fields that must agree between the batches of one task (all but the algorithm)."""
+    return {k: v for k, v in cfg.items() if k != "algorithm"}
+
+
+def conflicts(out: str, cfg: Config, keys: np.ndarray) -> dict[str, str]:
+    """{stem: what differs} for each batch in `out` that a batch of `cfg` from `keys` may not sit beside.
+
+    The batches of one task must share their config (the algorithm aside) and their keys.
+    """
+    want, found = _comparable(dataclasses.asdict(cfg)), {}
+    for stem, saved in _batches(out):
+        if saved["config"].get("task") != cfg.task:
+            continue
+        differ = differences(_comparable(saved["config"]), want)
+        if saved["keys"] != np.asarray(keys).tolist():
+            differ = ", ".join(filter(None, [differ, f"{len(saved['keys'])} other seed keys, now {len(keys)}"]))
+        if differ:
+            found[stem] = differ
+    return found
+
+
+def remove_batches(out: str, stems: list[str]) -> None:
+    """Removes these batches (JSON, npz, M-QD states); adaptation results of removed M-QD runs turn stale."""
+    for stem in stems:
+        for ext in (".json", ".npz", ".msgpack"):
+            if os.path.exists(stem + ext):
+                os.remove(stem + ext)
 
 
 def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
@@ -86,25 +141,40 @@ def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
     path = _stem(out, cfg.task, cfg.algorithm) + ".json"
     if not os.path.exists(path):
         return False
-    with open(path) as f:
-        saved = json.load(f)
+    saved = read_json(path)
     return saved.get("config") == dataclasses.asdict(cfg) and saved.get("keys") == np.asarray(keys).tolist()
+
+
+def remove_derived(out: str) -> None:
+    """Removes the tables and figures made from `out`'s results (they are remade from the files by `mqd plot`)."""
+    for pattern in DERIVED:
+        for path in glob.glob(os.path.join(glob.escape(out), pattern)):
+            os.remove(path)
 
 
 def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: dict[str, np.ndarray],
               wall_s: float) -> None:
-    """Writes a batch of runs of `cfg` (states and metrics with a leading seed axis) to the folder `out`."""
+    """Writes a batch of runs of `cfg` (states and metrics with a leading seed axis) to the folder `out`.
+
+    Raises ValueError if `out` holds batches that conflict with it (`conflicts`);
+    removes the tables and figures made from the folder's earlier results.
+    """
+    differ = conflicts(out, cfg, keys)
+    if differ:
+        raise ValueError(f"{out!r} refused: " + "; ".join(f"{os.path.basename(s)} differs ({d})"
+                                                        for s, d in differ.items()))
     os.makedirs(out, exist_ok=True)
+    remove_derived(out)
     stem = _stem(out, cfg.task, cfg.algorithm)
+    meta = {"config": dataclasses.asdict(cfg), "keys": np.asarray(keys).tolist(), "provenance": provenance()}
     rep = jax.device_get(states.repertoire)
     m = max(int(rep.count.max()), 1)
-    np.savez_compressed(stem + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
-                        qualities=rep.qualities[:, :m])
+    write_npz(stem + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
+              qualities=rep.qualities[:, :m], meta=np.asarray(json.dumps(meta)))
     if cfg.algorithm == "mqd":
         checkpoint.save(stem + ".msgpack", states, metrics, cfg, keys)
     # The JSON last: its presence marks the runs as complete (`is_done`).
-    write_json(stem + ".json", {"config": dataclasses.asdict(cfg), "keys": np.asarray(keys), "wall_s": wall_s,
-                                "machine": machine(), "metrics": metrics})
+    write_json(stem + ".json", {**meta, "wall_s": wall_s, "machine": machine(), "metrics": metrics})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,17 +209,31 @@ def task_order(task: str) -> int:
     return (*registered_tasks(), task).index(task)
 
 
+def _load_npz(path: str) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path) as f:
+            return {k: f[k] for k in ("count", "behaviors")}
+    except (OSError, ValueError, KeyError) as e:
+        raise ValueError(f"cannot read {path!r}: {e}") from e
+
+
 def load_runs(out: str) -> dict[str, dict[str, Runs]]:
-    """{task: {algorithm: Runs}} for every completed batch of runs in `out` (tasks in registry order)."""
+    """{task: {algorithm: Runs}} for every completed batch of runs in `out` (tasks in registry order).
+
+    Raises ValueError, naming the files, for damaged files and for batches of one
+    task that differ in config (but for the algorithm) or seed keys.
+    """
     found: dict[str, dict[str, Runs]] = {}
-    for path in sorted(glob.glob(os.path.join(out, "*.json"))):
-        stem = path[:-len(".json")]
-        if not os.path.exists(stem + ".npz"):
-            continue  # adaptation.json and other files
-        with open(path) as f:
-            saved = json.load(f)
-        cfg = Config(**saved["config"])
-        rep = np.load(stem + ".npz")
+    for stem, saved in _batches(out):
+        try:
+            cfg = Config(**saved["config"])
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{stem + '.json'!r} holds an invalid config: {e}") from e
+        differ = conflicts(out, cfg, np.asarray(saved["keys"]))
+        if differ:
+            raise ValueError(f"{out!r} mixes runs that cannot be compared: {os.path.basename(stem)} and "
+                             + "; ".join(f"{os.path.basename(s)} differ ({d})" for s, d in differ.items()))
+        rep = _load_npz(stem + ".npz")
         metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
         found.setdefault(cfg.task, {})[cfg.algorithm] = Runs(
             cfg, np.asarray(saved["keys"], np.uint32), saved["wall_s"], saved["machine"], metrics, rep["count"],
@@ -165,11 +249,34 @@ def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     path = _stem(out, task, "mqd")
     if not os.path.exists(path + ".json"):
         raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task}` with M-QD first")
-    with open(path + ".json") as f:
-        saved = json.load(f)
+    saved = read_json(path + ".json")
     cfg, keys = Config(**saved["config"]), np.asarray(saved["keys"], np.uint32)
     state, _ = checkpoint.load(path + ".msgpack", cfg, keys)
     return cfg, keys, state
+
+
+def source(out: str, task: str) -> str:
+    """The SHA-256 of `task`'s final M-QD states in `out`: what an adaptation result was computed from."""
+    with open(_stem(out, task, "mqd") + ".msgpack", "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
+    """The adaptation results in `out` whose M-QD runs are still there unchanged, and the tasks left out.
+
+    Returns ({task: {method: results}} in registry order, [tasks whose results are stale]).
+    """
+    path = os.path.join(out, ADAPTATION)
+    found = read_json(path) if os.path.exists(path) else {}
+    current, stale = {}, []
+    for task, entry in found.items():
+        fresh = (isinstance(entry, dict) and os.path.exists(_stem(out, task, "mqd") + ".msgpack")
+                 and entry.get("source") == source(out, task))
+        if fresh:
+            current[task] = entry["methods"]
+        else:
+            stale.append(task)
+    return {t: current[t] for t in sorted(current, key=task_order)}, stale
 
 
 def _pm(x: np.ndarray, digits: int = 3) -> str:
@@ -196,12 +303,14 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
         return "| " + " | ".join(columns) + " |"
 
     def coverage(task: str, a: str, r: Runs) -> str:
-        paper = PAPER_COVERAGE.get(task, {}).get(a)
+        # The paper's value only beside runs made with the paper's settings (Table II).
+        paper = PAPER_COVERAGE.get(task, {}).get(a) if r.cfg == Config.paper(task, algorithm=a) else None
         return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "")
 
     head = [row("task", *(NAMES[a] for a in algs)), "|---" * (len(algs) + 1) + "|"]
     lines = [f"Seeds per task: {', '.join(map(str, seeds))}; mean +- std over seeds.", "",
-             "Table I: final coverage (the paper's in brackets)", "", *head]
+             "Table I: final coverage (the paper's in brackets, shown only beside runs with Table II's settings, "
+             "`Config.paper`)", "", *head]
     lines += [row(t, *cells(t, lambda a, r, t=t: coverage(t, a, r))) for t in runs]
     lines += ["", "Final mean quality", "", *head]
     lines += [row(t, *cells(t, lambda a, r: _pm(r.final("mean_quality")))) for t in runs]

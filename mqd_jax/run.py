@@ -10,9 +10,9 @@ import numpy as np
 from flax import struct
 
 from mqd_jax import archive as archive_lib
-from mqd_jax import coverage, model, repertoire, selection, variation
+from mqd_jax import coverage, diagnostics, model, repertoire, selection, variation
 from mqd_jax import filter as model_filter
-from mqd_jax.config import Config, Params
+from mqd_jax.config import Config, Params, check_params
 from mqd_jax.task import Task, check_outputs
 
 # Nearest pre-generation skills precomputed per candidate (see repertoire.py).
@@ -61,12 +61,18 @@ def _reachable(cfg: Config) -> np.ndarray:
 
 
 def init(key: jax.Array, cfg: Config) -> State:
-    """The state before the first generation: empty repertoire and archive, random model.
+    """The state before the first generation: empty repertoire and archive, random model. Jitted.
 
     Raises ValueError if the task's `evaluate` breaks the task protocol's shapes.
     """
+    check_outputs(get_task(cfg), cfg.task, cfg.population_size)
+    return _init(key, cfg)
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _init(key: jax.Array, cfg: Config) -> State:
+    # One compiled program rather than a few dozen eager operations: a second start loads it from the cache.
     task = get_task(cfg)
-    check_outputs(task, cfg.task, cfg.population_size)
     n, d = task.action_dim, task.behavior_dim
     key, k_model = jax.random.split(key)
     return State(
@@ -79,6 +85,37 @@ def init(key: jax.Array, cfg: Config) -> State:
         generation=jnp.int32(0),
         num_evaluations=jnp.int32(0),
     )
+
+
+@functools.cache
+def _state_shapes(cfg: Config) -> State:
+    """The shapes and dtypes of a state of `cfg` (abstract: nothing runs)."""
+    return jax.eval_shape(lambda k: init(k, cfg), jax.ShapeDtypeStruct((2,), jnp.uint32))
+
+
+def check_state(state: State, cfg: Config, batch: tuple[int, ...] = (), fields: tuple[str, ...] | None = None) -> None:
+    """Raises ValueError unless every array of `state` has the shape and dtype a state of `cfg` has.
+
+    `batch` is a leading batch shape (a sweep's states: (S,)); `fields` limits the
+    check to these fields of the state (default: all). Catches a state of another
+    task, capacity or model size passed with the wrong config (tracers too:
+    shapes are static). Tasks with the same action and behavior sizes cannot be
+    told apart this way.
+    """
+    want = _state_shapes(cfg)
+    if fields is not None:
+        want, state = ({f: getattr(s, f) for f in fields} for s in (want, state))
+    want, structure = jax.tree_util.tree_flatten_with_path(want)
+    got, got_structure = jax.tree_util.tree_flatten(state)
+    if got_structure != structure:
+        why = "a state of another structure"
+    else:
+        why = next((f"state{jax.tree_util.keystr(path)} is {jnp.result_type(g)}{list(np.shape(g))}, expected "
+                    f"{w.dtype}{[*batch, *w.shape]}" for (path, w), g in zip(want, got, strict=True)
+                    if tuple(np.shape(g)) != (*batch, *w.shape) or jnp.result_type(g) != w.dtype), None)
+    if why is not None:
+        raise ValueError(f"the state does not belong to this config (task {cfg.task!r}, capacity {cfg.capacity}, "
+                         f"hidden_size {cfg.hidden_size}): {why}")
 
 
 def _candidates(key: jax.Array, state: State, cfg: Config, params: Params, task: Task, num: int) -> jax.Array:
@@ -121,12 +158,25 @@ def _params(cfg: Config, params: Params | None) -> Params:
     return jax.lax.optimization_barrier(cfg.params()) if params is None else params
 
 
-@functools.partial(jax.jit, static_argnames="cfg")
+def _checked(state: State, cfg: Config, params: Params | None) -> None:
+    """The checks every entry point makes before tracing: the state fits `cfg`, concrete params are valid."""
+    check_state(state, cfg)
+    if params is not None:
+        check_params(params, cfg)
+
+
 def ask(state: State, cfg: Config, params: Params | None = None) -> Candidates:
     """Variation and, for M-QD after warm-up, the model's filter (Algorithm 1).
 
     Uses `state.key` and does not advance it: `tell` does. Pure and jitted.
+    Raises ValueError for a state of another config or invalid concrete params.
     """
+    _checked(state, cfg, params)
+    return _ask(state, cfg, params)
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _ask(state: State, cfg: Config, params: Params | None) -> Candidates:
     params, task, pop = _params(cfg, params), get_task(cfg), cfg.population_size
     _, k_cand, k_eval, _ = jax.random.split(state.key, 4)
     if cfg.algorithm != "mqd":
@@ -166,22 +216,30 @@ def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
         raise ValueError(f"tell: valid has dtype {valid.dtype}; expected bool")
 
 
-@functools.partial(jax.jit, static_argnames="cfg")
 def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
          cfg: Config, params: Params | None = None) -> tuple[State, dict[str, jax.Array]]:
-    """Insertion, archive, coverage, novelty and model training for evaluated candidates.
+    """Insertion, archive, coverage, novelty and model training for evaluated candidates. Jitted.
 
     Args:
       state: the state `ask` was called with.
       candidates: what `ask` returned.
-      behaviors: [P, d], qualities: [P], valid: [P] bool: the rollouts' results;
-        rows that `candidates.evaluate` leaves out are ignored (any value).
+      behaviors: [P, d], qualities: [P], valid: [P] bool: the rollouts' results
+        (arrays or nested lists); rows that `candidates.evaluate` leaves out are
+        ignored (any value).
 
     Returns:
       The next state (key advanced) and the generation's metrics (see `run_mqd`).
     """
+    _checked(state, cfg, params)
+    behaviors, qualities, valid = (jnp.asarray(x) for x in (behaviors, qualities, valid))
+    _check_results(behaviors, qualities, valid, cfg.population_size, get_task(cfg).behavior_dim)
+    return _tell(state, candidates, behaviors, qualities, valid, cfg, params)
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
+          cfg: Config, params: Params | None) -> tuple[State, dict[str, jax.Array]]:
     params, task, pop = _params(cfg, params), get_task(cfg), cfg.population_size
-    _check_results(behaviors, qualities, valid, pop, task.behavior_dim)
     key, _, _, k_train = jax.random.split(state.key, 4)
     actions = candidates.actions
     ok = candidates.evaluate & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
@@ -216,6 +274,9 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
     state = State(repertoire=rep, archive=arch, coverage=grid, model=trained, key=key,
                   generation=state.generation + 1, num_evaluations=state.num_evaluations)
     count = lambda s: (ins.status == s).sum(dtype=jnp.int32)  # noqa: E731
+    q_low, q_high = task.quality_range
+    outside_box = ((behaviors < jnp.asarray(task.behavior_low, jnp.float32))
+                   | (behaviors > jnp.asarray(task.behavior_high, jnp.float32))).any(axis=1)
     metrics = {
         "coverage": coverage.fraction(grid),
         "mean_quality": jnp.where(rep.valid, rep.qualities, 0.0).sum() / jnp.maximum(rep.count, 1),
@@ -227,6 +288,8 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
         "rejected": count(repertoire.REJECTED),
         "dropped_full": count(repertoire.DROPPED_FULL),
         "invalid": (candidates.evaluate & ~ok).sum(dtype=jnp.int32),
+        "out_of_range": (ok & ((qualities < q_low) | (qualities > q_high))).sum(dtype=jnp.int32),
+        "out_of_box": (ok & outside_box).sum(dtype=jnp.int32),
         "discarded": candidates.discarded,
         "model_loss": loss,
         "prediction_error": prediction_error,
@@ -242,12 +305,22 @@ def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[s
     return tell(state, candidates, behaviors, qualities, valid, cfg, params)
 
 
-def run_generations(state: State, cfg: Config, params: Params, num: int) -> tuple[State, dict[str, jax.Array]]:
-    """`num` generations as one `lax.scan`; metrics are stacked, shape (num,)."""
-    return jax.lax.scan(lambda s, _: generation(s, cfg, params), state, None, length=num)
+def run_generations(state: State, cfg: Config, params: Params, num: int,
+                    todo: jax.Array | None = None) -> tuple[State, dict[str, jax.Array]]:
+    """`num` generations as one `lax.scan`; metrics are stacked, shape (num,).
+
+    With `todo` (an int32, may be traced) only the first `todo` generations run
+    and the rest leave the state as it is (their metrics are zeros): one
+    compiled program of `num` generations then also serves a shorter last chunk.
+    """
+    if todo is None:
+        return jax.lax.scan(lambda s, _: generation(s, cfg, params), state, None, length=num)
+    shapes = jax.eval_shape(lambda s: generation(s, cfg, params), state)[1]
+    skipped = jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes)
+    return jax.lax.scan(lambda s, i: jax.lax.cond(i < todo, lambda: generation(s, cfg, params), lambda: (s, skipped)),
+                        state, jnp.arange(num))
 
 
-@functools.partial(jax.jit, static_argnames="cfg")
 def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[State, dict[str, jax.Array]]:
     """A whole run: `cfg.max_generations` generations from an empty repertoire.
 
@@ -265,8 +338,26 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
       or non-finite), discarded (turned down by M-QD's model), model_loss
       (mean training loss of the generation's mini-batches) and
       prediction_error (behavior MSE in real units of the model's predictions
-      on this generation's valid rollouts, before training on them). The
-      last two are NaN where they do not apply (QD, RANDOM, no training or no
-      valid rollout).
+      on this generation's valid rollouts, before training on them; these two
+      are NaN where they do not apply: QD, RANDOM, no training or no valid
+      rollout), out_of_range (valid rollouts whose quality lies outside
+      `Task.quality_range`) and out_of_box (valid rollouts whose behavior lies
+      outside the behavior box).
+
+    Raises ValueError for invalid concrete `params` (NaN, infinite, out of
+    range). Called with concrete arguments it waits for the run and warns
+    (`diagnostics.RunWarning`, once per problem, with counts) about dropped
+    niches, qualities outside the task's quality range, behaviors outside
+    the behavior box, and runs whose every rollout was invalid.
     """
+    if params is not None:
+        check_params(params, cfg)
+    state, metrics = _run_mqd(key, cfg, params)
+    if not any(isinstance(m, jax.core.Tracer) for m in metrics.values()):  # concrete: not inside a jit or vmap
+        diagnostics.warn(jax.device_get(metrics), cfg, get_task(cfg))
+    return state, metrics
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _run_mqd(key: jax.Array, cfg: Config, params: Params | None) -> tuple[State, dict[str, jax.Array]]:
     return run_generations(init(key, cfg), cfg, _params(cfg, params), cfg.max_generations)

@@ -29,8 +29,9 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from mqd_jax.config import Config, Params
-from mqd_jax.run import State, init, run_generations
+from mqd_jax import diagnostics
+from mqd_jax.config import Config, Params, check_params
+from mqd_jax.run import State, get_task, init, run_generations
 
 Metrics = dict[str, np.ndarray]
 
@@ -73,8 +74,9 @@ def _init(keys: jax.Array, cfg: Config) -> State:
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "num"), donate_argnums=0)
-def _chunk(states: State, params: Params, cfg: Config, num: int) -> tuple[State, dict[str, jax.Array]]:
-    return jax.vmap(lambda s, p: run_generations(s, cfg, p, num))(states, params)
+def _chunk(states: State, params: Params, todo: jax.Array, cfg: Config, num: int) -> tuple[State, dict[str, jax.Array]]:
+    """`num` generations of every run, of which the first `todo` run (one program for every chunk)."""
+    return jax.vmap(lambda s, p: run_generations(s, cfg, p, num, todo))(states, params)
 
 
 def run_batch(
@@ -83,6 +85,7 @@ def run_batch(
     params: Params | None = None,
     chunk: int | None = None,
     on_chunk: Callable[[int, Metrics], None] | None = None,
+    on_compiled: Callable[[], None] | None = None,
 ) -> tuple[State, Metrics]:
     """R runs of `cfg`, vmapped and sharded over the devices.
 
@@ -94,10 +97,15 @@ def run_batch(
       chunk: generations per compiled call (default: the whole run).
       on_chunk: called after each chunk with (generations done, that chunk's
         metrics, each [R, chunk]).
+      on_compiled: called once the chunk's program is compiled (it is compiled
+        ahead of the first chunk, once for every chunk).
 
     Returns:
       The final states (every array with a leading [R] axis, on the devices)
       and the per-generation metrics, each a numpy array [R, max_generations].
+
+    Raises ValueError for bad keys, params (shapes; NaN, infinite or out-of-range
+    values) or chunk; warns like `run_mqd` (`diagnostics.RunWarning`) at the end.
     """
     keys = np.asarray(keys)
     if keys.ndim != 2 or keys.shape[1] != 2 or keys.dtype != np.uint32:
@@ -109,9 +117,11 @@ def run_batch(
         params = jax.tree.map(lambda x: jnp.broadcast_to(x, (runs,)), params)
     elif shapes != {(runs,)}:
         raise ValueError(f"params must be scalars or have shape ({runs},) (one per key); got shapes {sorted(shapes)}")
+    check_params(params, cfg)
     chunk = cfg.max_generations if chunk is None else chunk
-    if not (isinstance(chunk, int) and chunk >= 1):
+    if not (isinstance(chunk, int) and not isinstance(chunk, bool) and chunk >= 1):
         raise ValueError(f"chunk={chunk!r} is invalid: expected an int >= 1")
+    chunk = min(chunk, cfg.max_generations)
 
     devices = jax.devices()
     padded = -(-runs // len(devices)) * len(devices)
@@ -119,11 +129,17 @@ def run_batch(
     sharding = NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
     states = _init(_shard(pad(keys), sharding), cfg)
     params = jax.tree.map(lambda x: _shard(pad(np.asarray(x, np.float32)), sharding), params)
+    step = _chunk.lower(states, params, jnp.int32(chunk), cfg, chunk).compile()
+    if on_compiled is not None:
+        on_compiled()
     parts: list[Metrics] = []
     while (done := sum(len(p["coverage"][0]) for p in parts)) < cfg.max_generations:
-        states, metrics = _chunk(states, params, cfg, min(chunk, cfg.max_generations - done))
-        parts.append({k: _gather(v)[:runs] for k, v in metrics.items()})
+        todo = min(chunk, cfg.max_generations - done)
+        states, metrics = step(states, params, jnp.int32(todo))
+        parts.append({k: _gather(v)[:runs, :todo] for k, v in metrics.items()})
         if on_chunk is not None:
-            on_chunk(done + len(parts[-1]["coverage"][0]), parts[-1])
+            on_chunk(done + todo, parts[-1])
     states = jax.tree.map(lambda x: x[:runs], states)
-    return states, {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[0]}
+    metrics = {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[0]}
+    diagnostics.warn(metrics, cfg, get_task(cfg))
+    return states, metrics

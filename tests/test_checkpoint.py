@@ -79,7 +79,10 @@ def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.load(str(path), CFG, KEY)
     payload = serialization.msgpack_restore(data)
     path.write_bytes(serialization.msgpack_serialize({**payload, "format": checkpoint.FORMAT + 1}))
-    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 or 2"):
+    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 to 3"):
+        checkpoint.load(str(path), CFG, KEY)
+    path.write_bytes(serialization.msgpack_serialize({**payload, "sha256": "0" * 64}))
+    with pytest.raises(ValueError, match="checksum does not match"):
         checkpoint.load(str(path), CFG, KEY)
 
 
@@ -87,7 +90,7 @@ def test_format_1_checkpoints_still_load(tmp_path, uninterrupted):
     """Format 1 kept the coverage bounds as arrays in the state; they are dropped on loading."""
     path = tmp_path / "run.ckpt"
     checkpoint.save(str(path), *uninterrupted, CFG, KEY)
-    payload = serialization.msgpack_restore(path.read_bytes())
+    payload = serialization.msgpack_restore(serialization.msgpack_restore(path.read_bytes())["body"])
     coverage = {**payload["state"]["coverage"], "low": np.zeros(2, np.float32), "high": np.ones(2, np.float32)}
     old = {**payload, "format": 1, "state": {**payload["state"], "coverage": coverage}}
     path.write_bytes(serialization.msgpack_serialize(old))

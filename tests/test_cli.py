@@ -14,7 +14,7 @@ def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
               "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert out.count("generation ") == 2 and "done: coverage" in out
-    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    metrics = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
     _, want = run_mqd(jax.random.PRNGKey(0), Config(max_generations=6, population_size=8, capacity=64))
     np.testing.assert_array_equal(metrics["repertoire_size"], want["repertoire_size"])
     np.testing.assert_array_equal(metrics["coverage"], want["coverage"])
@@ -27,7 +27,7 @@ def test_mqd_run_mqd_writes_strict_json_with_null_for_untrained_generations(tmp_
               "--warmup-samples", "30", "--num-batches", "5", "--out", str(tmp_path)])
     text = (tmp_path / "metrics.json").read_text()
     assert "NaN" not in text
-    metrics = json.loads(text)
+    metrics = json.loads(text)["metrics"]
     # Trained at the end of generation 4 only (32 >= 30 evaluations).
     assert metrics["model_loss"][:3] == [None] * 3 and metrics["model_loss"][3] > 0
     assert all(x is not None for x in metrics["prediction_error"])
@@ -42,14 +42,17 @@ def test_mqd_run_resumes_its_checkpoint_and_refuses_another_config(tmp_path, cap
     capsys.readouterr()
     cli.main([*argv, "--resume"])  # already complete: nothing to run, same results
     out = capsys.readouterr().out
-    assert "generation " not in out and json.loads((tmp_path / "metrics.json").read_text()) == first
+    assert "resuming at generation 6 of 6" in out and "compiling" not in out
+    assert not any(line.startswith("generation") for line in out.splitlines())
+    assert json.loads((tmp_path / "metrics.json").read_text())["metrics"] == first["metrics"]
     with pytest.raises(SystemExit):
         cli.main([*argv[:-2], "--t-nov", "0.1", "--out", str(tmp_path), "--resume"])
-    assert "another config (t_nov: saved 0.04, now 0.1)" in capsys.readouterr().err
+    assert "another run (" in (err := capsys.readouterr().err) and "t_nov: saved 0.04, now 0.1" in err
 
 
 def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
-    with pytest.warns(UserWarning, match="raise --capacity above 10"):
+    dropped = r"9 new niches did not fit in the repertoire: raise capacity \(--capacity\) above 10"
+    with pytest.warns(UserWarning, match=dropped):
         cli.main(["run", "--generations", "3", "--population", "10", "--capacity", "10", "--out", str(tmp_path)])
 
 

@@ -1,0 +1,51 @@
+"""Where a result came from: package versions, the project's git revision, the machine.
+
+Every results file (`mqd run`'s and `mqd sweep`'s JSON, npz and checkpoints)
+records `provenance()` next to its config and key, so a result can be traced
+to the code that made it.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata
+import os
+import platform
+import subprocess
+import sys
+
+import jax
+
+PACKAGES = ("mqd-jax", "jax", "jaxlib", "flax", "optax", "chex", "numpy", "mujoco", "mujoco-mjx")
+
+
+def machine() -> str:
+    """The machine figures were measured on, e.g. 'x86_64, 2 CPU cores, jax 0.10.2 on cpu (cpu) x 1'."""
+    return (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()} "
+            f"({jax.devices()[0].device_kind}) x {jax.device_count()}")
+
+
+def _version(package: str) -> str | None:
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+@functools.cache
+def git_revision() -> str | None:
+    """The git commit of the checkout mqd_jax runs from ('+dirty' with uncommitted changes), or None."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        run = lambda *a: subprocess.run(["git", "-C", here, *a], capture_output=True, text=True,  # noqa: E731
+                                        timeout=10, check=True).stdout.strip()
+        commit = run("rev-parse", "HEAD")
+        return commit + ("+dirty" if run("status", "--porcelain", "--untracked-files=no") else "")
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def provenance() -> dict[str, object]:
+    """{"versions": {package: version}, "git": revision or None, "python": version, "machine": ...}."""
+    return {"versions": {p: _version(p) for p in PACKAGES}, "git": git_revision(),
+            "python": sys.version.split()[0], "machine": machine()}

@@ -1,0 +1,153 @@
+"""The command line as a user meets it: starting, resuming, interrupting, help, plugins, bad input."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+from test_trust import TINY, refused
+
+import envs
+from mqd_jax import Config, ask, checkpoint, cli, init, run_mqd, tell
+
+
+def backend_compiles(fn):
+    """How many programs XLA compiled while `fn()` ran."""
+    seen = []
+    listener = lambda event, *_, **__: seen.append(event) if event.endswith("backend_compile_duration") else None  # noqa: E731
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        fn()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    return len(seen)
+
+
+def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_path):
+    def run(generations, every, k):  # each k a config of its own, compiled afresh
+        cfg = Config(max_generations=generations, population_size=8, capacity=64, k=k)
+        return lambda: checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, str(tmp_path / f"{k}"), every)
+
+    run(4, 4, k=2)()  # the small programs every run shares, compiled once
+    assert backend_compiles(run(6, 4, k=3)) == backend_compiles(run(8, 4, k=4))  # 4 + 2 generations: as 4 + 4
+    cfg = Config(max_generations=6, population_size=8, capacity=64, k=4)
+    _, chunked = checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, str(tmp_path / "again"), 4)
+    _, whole = run_mqd(jax.random.PRNGKey(0), cfg)
+    for name, values in whole.items():
+        np.testing.assert_array_equal(chunked[name], values, err_msg=name)
+
+
+def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch):
+    argv = ["run", *TINY, "--generations", "4", "--chunk", "2", "--algorithm", "mqd", "--warmup-samples", "8",
+            "--num-batches", "2", "--out", str(tmp_path)]
+    chunk = cli._Progress.chunk
+
+    def interrupt_after_first(self, done, m):
+        chunk(self, done, m)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli._Progress, "chunk", interrupt_after_first)
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    assert e.value.code == 130
+    captured = capsys.readouterr()
+    assert "interrupted at generation 2; the same command with --resume continues" in captured.err
+    assert "Traceback" not in captured.err
+    monkeypatch.setattr(cli._Progress, "chunk", chunk)
+    cli.main([*argv, "--resume"])
+    out = capsys.readouterr().out
+    assert "resuming at generation 2 of 4" in out and "compiled in" in out
+    metrics = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
+    last = [line for line in out.splitlines() if line.startswith("generation")][-1]
+    assert last.startswith("generation    4/4") and f"discarded {sum(metrics['discarded']):6d}" in last
+    _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="mqd", max_generations=4, population_size=8,
+                                                     capacity=64, warmup_samples=8, num_batches=2))
+    np.testing.assert_array_equal(metrics["coverage"], whole["coverage"])
+
+
+def test_resume_without_a_checkpoint_and_chunk_zero_are_refused(tmp_path, capsys):
+    refused(["run", *TINY, "--resume", "--out", str(tmp_path)], capsys, "holds no checkpoint")
+    refused(["run", *TINY, "--chunk", "0", "--out", str(tmp_path)], capsys, "0 is invalid: expected an int >= 1")
+    refused(["sweep", "--seeds", "0"], capsys, "expected an int >= 1")
+
+
+def test_a_file_as_out_and_damaged_results_name_the_file(tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    refused(["run", *TINY, "--out", str(tmp_path / "file")], capsys, "is a file, not a folder")
+    (tmp_path / "obstacle2d_qd.json").write_text('{"config": {"task": "obst')
+    (tmp_path / "obstacle2d_qd.npz").write_bytes(b"")
+    refused(["plot", str(tmp_path)], capsys, f"cannot read {str(tmp_path / 'obstacle2d_qd.json')!r}")
+
+
+def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--max-generations MAX_GENERATIONS, --generations MAX_GENERATIONS Config.max_generations (default: 100)" \
+        in text
+    assert "(default: 0)" in text and "(default: results/run)" in text and "(default: 25)" in text
+    assert "obstacle2d, object2d, push_cube, push_sphere, place" in text and "package.module:factory" in text
+    with pytest.raises(SystemExit):
+        cli.main(["sweep", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--tasks TASK [TASK ...] tasks to sweep" in text and "--budgeted, --no-budgeted M-QD:" in text
+
+
+def test_numpy_scalars_in_a_config_are_the_python_values_they_hold():
+    cfg = Config(population_size=np.int64(10), t_dist=np.float32(0.02), budgeted=np.bool_(False))
+    assert cfg == Config(population_size=10, t_dist=float(np.float32(0.02)))
+    assert type(cfg.population_size) is int and type(cfg.t_dist) is float and type(cfg.budgeted) is bool
+    assert hash(cfg) == hash(Config(population_size=10, t_dist=float(np.float32(0.02))))
+
+
+def test_tell_takes_nested_lists():
+    cfg = Config(population_size=4, capacity=16)
+    state = init(jax.random.PRNGKey(0), cfg)
+    candidates = ask(state, cfg)
+    b, q, v = envs.make("obstacle2d").evaluate(candidates.actions, candidates.key)
+    from_lists, _ = tell(state, candidates, np.asarray(b).tolist(), np.asarray(q).tolist(), np.asarray(v).tolist(),
+                         cfg)
+    from_arrays, _ = tell(state, candidates, b, q, v, cfg)
+    for x, y in zip(jax.tree.leaves(from_lists), jax.tree.leaves(from_arrays), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_a_plugin_task_runs_from_the_command_line(tmp_path, capsys):
+    cli.main(["run", "--task", "plugin_tasks:make_reach", *TINY, "--out", str(tmp_path)])
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["config"]["task"] == "plugin_tasks:make_reach" and saved["metrics"]["repertoire_size"][-1] > 0
+    refused(["run", "--task", "plugin_tasks:missing", "--out", str(tmp_path / "b")], capsys,
+            "cannot load the factory 'missing' from module 'plugin_tasks'")
+    refused(["run", "--task", "plugin_tasks:Reach", "--out", str(tmp_path / "b")], capsys,  # not a factory
+            "task 'plugin_tasks:Reach': its factory failed (TypeError:")
+    refused(["run", "--task", "os:getcwd", "--out", str(tmp_path / "b")], capsys,
+            "task 'os:getcwd': its factory returned a str, not a mqd_jax.Task")
+
+
+def test_a_task_from_an_installed_packages_entry_point(tmp_path, monkeypatch):
+    info = tmp_path / "reach_plugin-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: reach-plugin\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[{envs.ENTRY_POINT_GROUP}]\nentry_reach = plugin_tasks:make_reach\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    envs._register_entry_points.cache_clear()
+    assert "entry_reach" in envs.registered_tasks()
+    state, _ = run_mqd(jax.random.PRNGKey(0), Config(task="entry_reach", max_generations=2, population_size=8,
+                                                     capacity=64))
+    assert int(state.repertoire.count) > 0
+
+
+def test_the_compilation_cache_is_on_by_default_and_can_be_turned_off(tmp_path, monkeypatch):
+    assert cli.compilation_cache(False) is None
+    monkeypatch.setenv(cli.CACHE_ENV, "off")
+    assert cli.compilation_cache(True) is None
+    # A fresh process without settings: the user's cache folder.
+    env = {k: v for k, v in os.environ.items() if k not in (cli.CACHE_ENV, "JAX_COMPILATION_CACHE_DIR")}
+    code = ("from mqd_jax import cli; import jax; "
+            "print(cli.compilation_cache(True), jax.config.jax_compilation_cache_dir)")
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "XDG_CACHE_HOME": str(tmp_path)},
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out == [str(tmp_path / "mqd-jax")] * 2

@@ -1,0 +1,57 @@
+"""Every code block of the README and docs/ runs (Python), parses (the `mqd` command lines, TOML) or names
+files that exist (scripts, extras)."""
+
+import pathlib
+import re
+import shlex
+
+import pytest
+
+from mqd_jax import cli
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def blocks(path, language):
+    """The code blocks of `language` in the markdown file `path`, in order."""
+    return re.findall(rf"^```{language}\n(.*?)^```", path.read_text(), flags=re.S | re.M)
+
+
+@pytest.mark.parametrize("path", [p for p in DOCS if blocks(p, "python")], ids=lambda p: p.name)
+def test_python_blocks_run(path, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # examples may write files
+    namespace = {}
+    for code in blocks(path, "python"):  # in order, sharing names, as a reader runs them
+        exec(compile(code, str(path), "exec"), namespace)
+
+
+def commands(text):
+    """The shell commands of a bash block: lines without comments, split at `&&`."""
+    for line in text.splitlines():
+        line = line.split(" #")[0].strip()
+        yield from (c.strip() for c in line.split("&&") if c.strip())
+
+
+@pytest.mark.parametrize("path", [p for p in DOCS if blocks(p, "bash")], ids=lambda p: p.name)
+def test_shell_blocks_name_real_commands_flags_and_files(path):
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    parser, _ = cli._parser()
+    for block in blocks(path, "bash"):
+        for command in commands(block):
+            words = shlex.split(command)
+            if words[0] == "mqd":
+                parser.parse_args(words[1:])  # exits (fails) on an unknown subcommand or flag
+            elif words[:1] == ["python"] and words[1].startswith("experiments/"):
+                assert (ROOT / words[1]).is_file(), command
+            elif words[:2] == ["pip", "install"]:
+                wanted = re.findall(r"\[(.*?)\]", command)
+                assert all(e in extras for w in wanted for e in w.split(",")), command
+
+
+def test_toml_blocks_parse():
+    tomllib = pytest.importorskip("tomllib")
+    for path in DOCS:
+        for block in blocks(path, "toml"):
+            assert tomllib.loads(block)

@@ -1,0 +1,254 @@
+"""Results are never lost or mixed: one test per case of the [trust] issue, and the command line's small promises."""
+
+import dataclasses
+import hashlib
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+
+from mqd_jax import Config, adapt, checkpoint, cli, diagnostics, folders, results, run_mqd
+from mqd_jax.config import check_params
+from mqd_jax.sweep import run_batch, seed_keys
+
+TINY = ["--generations", "3", "--population", "8", "--capacity", "64"]
+TINY_MQD = [*TINY, "--warmup-samples", "8", "--num-batches", "2"]
+
+
+def digest(folder):
+    """{file name: SHA-256} of every file in `folder` (to show that nothing changed)."""
+    return {f: hashlib.sha256((folder / f).read_bytes()).hexdigest() for f in sorted(os.listdir(folder))}
+
+
+def refused(argv, capsys, match):
+    """Runs `mqd argv`, which must exit with a usage error whose message contains `match`."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert match in err, err
+    return err
+
+
+# Case 1: a run folder belongs to one config and seed.
+
+def test_run_folder_refuses_another_config_and_keeps_the_first_run(tmp_path, capsys):
+    out = str(tmp_path)
+    cli.main(["run", *TINY_MQD, "--algorithm", "mqd", "--out", out])
+    before = digest(tmp_path)
+    err = refused(["run", *TINY, "--generations", "2", "--algorithm", "random", "--out", out], capsys,
+                  "it holds results of another run")
+    assert "algorithm: saved 'mqd', now 'random'" in err and "max_generations: saved 3, now 2" in err
+    assert "usage: mqd run" in err  # the subcommand's usage, not the top-level one
+    assert digest(tmp_path) == before
+    refused(["run", *TINY_MQD, "--algorithm", "mqd", "--seed", "1", "--out", out], capsys, "seed: saved 0, now 1")
+    # The first run is still whole: it resumes (already complete: nothing to run).
+    cli.main(["run", *TINY_MQD, "--algorithm", "mqd", "--out", out, "--resume"])
+    assert json.loads((tmp_path / "metrics.json").read_text())["config"]["algorithm"] == "mqd"
+    # --overwrite is the way out.
+    cli.main(["run", *TINY, "--generations", "2", "--algorithm", "random", "--out", out, "--overwrite"])
+    assert "--overwrite: removed" in capsys.readouterr().out
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["config"] == dataclasses.asdict(Config(algorithm="random", max_generations=2, population_size=8,
+                                                        capacity=64))
+
+
+def test_every_run_file_records_config_seed_versions_and_revision(tmp_path):
+    cli.main(["run", *TINY, "--seed", "7", "--out", str(tmp_path)])
+    cfg = dataclasses.asdict(Config(max_generations=3, population_size=8, capacity=64))
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["config"] == cfg and saved["seed"] == 7
+    assert saved["key"] == np.asarray(jax.random.PRNGKey(7)).tolist()
+    assert saved["provenance"]["versions"]["jax"] == jax.__version__
+    assert saved["provenance"]["git"]  # this checkout's commit
+    meta = json.loads(str(np.load(tmp_path / "repertoire.npz")["meta"]))
+    assert meta["config"] == cfg and meta["seed"] == 7 and meta["provenance"] == saved["provenance"]
+    if importlib.util.find_spec("matplotlib"):  # the figure needs the optional plot extra
+        from PIL import Image
+
+        assert json.loads(Image.open(tmp_path / "run.png").text["Description"])["config"] == cfg
+    manifest = json.loads((tmp_path / folders.MANIFEST).read_text())
+    assert manifest["kind"] == "run" and manifest["identity"] == {"config": cfg, "seed": 7}
+
+
+def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silently(tmp_path, capsys):
+    (tmp_path / "metrics.json").write_text("{}")
+    refused(["run", *TINY, "--out", str(tmp_path)], capsys, "results without a manifest (metrics.json")
+    assert (tmp_path / "metrics.json").read_text() == "{}"
+
+
+# Case 2: a sweep folder never mixes configs, and derived files follow their inputs.
+
+def sweep(out, *flags):
+    cli.main(["sweep", "--tasks", "obstacle2d", *TINY, "--out", str(out), *flags])
+
+
+def test_sweep_refuses_a_batch_of_another_config_before_running_anything(tmp_path, capsys):
+    sweep(tmp_path, "--algorithms", "qd", "random", "--seeds", "3")
+    before = digest(tmp_path)
+    capsys.readouterr()
+    err = refused(["sweep", "--tasks", "obstacle2d", "--algorithms", "random", "--seeds", "2", *TINY,
+                   "--generations", "2", "--out", str(tmp_path)], capsys, "refused")
+    assert "obstacle2d_qd differs (max_generations: saved 3, now 2, 3 other seed keys, now 2)" in err
+    assert "generation" not in capsys.readouterr().out and digest(tmp_path) == before
+    # With --overwrite, both clashing batches go: the folder holds only comparable runs.
+    sweep(tmp_path, "--algorithms", "random", "--seeds", "2", "--generations", "2", "--overwrite")
+    runs = results.load_runs(str(tmp_path))
+    assert list(runs["obstacle2d"]) == ["random"] and runs["obstacle2d"]["random"].metrics["coverage"].shape == (2, 2)
+    assert "Seeds per task: 2;" in (tmp_path / "table1.md").read_text()
+
+
+def test_tables_refuse_a_folder_whose_batches_were_mixed_by_hand(tmp_path):
+    sweep(tmp_path, "--algorithms", "qd", "random", "--seeds", "2")
+    path = tmp_path / "obstacle2d_random.json"
+    saved = json.loads(path.read_text())
+    saved["config"]["t_dist"] = 0.03
+    path.write_text(json.dumps(saved))
+    with pytest.raises(ValueError, match=r"mixes runs that cannot be compared.*t_dist: saved 0\.03, now 0\.02"):
+        results.load_runs(str(tmp_path))
+
+
+def test_adaptation_of_replaced_mqd_runs_is_left_out_and_tables_are_remade(tmp_path, capsys):
+    mqd = ["--algorithms", "mqd", "--seeds", "2", "--warmup-samples", "8", "--num-batches", "2"]
+    sweep(tmp_path, *mqd)
+    cli.main(["adapt", str(tmp_path), "--goals", "3"])
+    assert (tmp_path / "adaptation.md").exists()
+    sweep(tmp_path, *mqd, "--t-nov", "0.01", "--overwrite")  # other M-QD runs: the adaptation results are stale
+    out = capsys.readouterr().out
+    assert "left out the adaptation results of obstacle2d" in out
+    assert not (tmp_path / "adaptation.md").exists() and not (tmp_path / "fig3_adaptation_error.png").exists()
+    assert "0.01" not in json.dumps(json.loads((tmp_path / "adaptation.json").read_text()))  # kept, not used
+    found, stale = results.adaptation(str(tmp_path))
+    assert found == {} and stale == ["obstacle2d"]
+
+
+def test_saving_a_batch_removes_the_tables_made_before_it(tmp_path):
+    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
+    assert (tmp_path / "table1.md").exists()
+    cfg = Config(max_generations=3, population_size=8, capacity=64, algorithm="random")
+    keys = np.asarray(seed_keys(2))
+    states, metrics = run_batch(cfg, keys)
+    results.save_runs(str(tmp_path), cfg, keys, states, metrics, 1.0)
+    assert not (tmp_path / "table1.md").exists() and not (tmp_path / "fig2_obstacle2d.png").exists()
+
+
+def test_paper_values_appear_only_beside_runs_with_the_papers_settings(tmp_path):
+    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
+    table = (tmp_path / "table1.md").read_text()
+    assert "(paper" not in table and "shown only beside runs with Table II's settings" in table
+
+
+# Case 3: one writer at a time.
+
+HOLD_LOCK = textwrap.dedent("""
+    import sys, time
+    from mqd_jax import folders
+    with folders.lock(sys.argv[1]):
+        print("locked", flush=True)
+        time.sleep(600)
+""")
+
+
+def test_a_second_writer_is_refused_and_a_killed_writer_leaves_no_lock(tmp_path, capsys):
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        refused(["run", *TINY, "--out", str(tmp_path)], capsys,
+                f"is being written by another mqd process (pid {holder.pid})")
+        refused(["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", *TINY, "--out", str(tmp_path)], capsys,
+                "another mqd process")
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    with folders.lock(str(tmp_path)):  # the kernel released the killed holder's lock
+        pass
+
+
+def test_leftover_temporary_files_of_a_killed_writer_are_removed(tmp_path, capsys):
+    (tmp_path / "metrics.json.abc123.mqdtmp").write_bytes(b"half a file")
+    with folders.lock(str(tmp_path)) as removed:
+        assert [os.path.basename(p) for p in removed] == ["metrics.json.abc123.mqdtmp"]
+    assert not list(tmp_path.glob("*.mqdtmp"))
+
+
+# Case 4: runtime parameters, states and checkpoints are checked.
+
+@pytest.mark.parametrize(("field", "value", "match"), [
+    ("t_dist", np.nan, "Params.t_dist=nan"), ("iso_sigma", np.nan, "Params.iso_sigma=nan"),
+    ("t_dist", 0.05, "<= Config.t_dist"), ("learning_rate", 0.0, "Params.learning_rate=0.0"),
+    ("t_qua", np.inf, "Params.t_qua=inf"), ("t_nov", -0.1, "Params.t_nov=-0.1")])
+def test_invalid_concrete_params_are_refused_naming_the_field(field, value, match):
+    cfg = Config(max_generations=2, population_size=8, capacity=64)
+    params = cfg.params().replace(**{field: np.float32(value)})
+    with pytest.raises(ValueError, match=match):
+        run_mqd(jax.random.PRNGKey(0), cfg, params)
+    batched = jax.tree.map(lambda x: np.stack([x, x]), cfg.params())
+    with pytest.raises(ValueError, match=match):  # one bad member of a batch is enough
+        run_batch(cfg, seed_keys(2), batched.replace(**{field: np.asarray([getattr(cfg, field), value], np.float32)}))
+
+
+def test_params_check_skips_traced_values_and_accepts_the_configs_own():
+    cfg = Config()
+    check_params(cfg.params(), cfg)
+    jax.jit(lambda t: check_params(cfg.params().replace(t_dist=t), cfg) or t)(np.float32(np.nan))  # traced: skipped
+
+
+def test_adapt_refuses_a_state_of_another_task():
+    cfg = Config(max_generations=2, population_size=8, capacity=64)
+    state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
+    with pytest.raises(ValueError, match=r"does not belong to this config.*task 'object2d'"):
+        adapt(state, np.zeros((2, 2), np.float32), jax.random.PRNGKey(1), dataclasses.replace(cfg, task="object2d"),
+              "nearest")
+
+
+def test_a_checkpoint_altered_in_place_is_refused(tmp_path):
+    cfg = Config(max_generations=2, population_size=8, capacity=64)
+    key, path = jax.random.PRNGKey(0), str(tmp_path / "c.msgpack")
+    checkpoint.run_with_checkpoints(key, cfg, path, every=1)
+    data = bytearray((tmp_path / "c.msgpack").read_bytes())
+    checkpoint.load(path, cfg, key)  # intact: loads
+    data[len(data) // 2] ^= 1  # one bit, inside the saved arrays
+    (tmp_path / "c.msgpack").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="checksum does not match"):
+        checkpoint.load(path, cfg, key)
+
+
+# Case 5: what goes wrong without an error is said, with counts.
+
+@pytest.mark.parametrize(("changes", "match"), [
+    ({"scale": 0.5}, r"valid rollouts returned a quality outside the task's quality_range \(-6.3, 0.0\)"),
+    ({"offset": 0.3}, "valid rollouts ended outside the behavior box"),
+    ({"valid": False}, "all 24 rollouts were invalid")])
+def test_unreliable_runs_warn_once_with_counts(changes, match):
+    import plugin_tasks
+
+    import envs
+
+    name = "trust_" + "_".join(changes)
+    if name not in envs.registered_tasks():
+        envs.register(name, lambda: plugin_tasks.make_reach(**changes))
+    cfg = Config(task=name, algorithm="mqd", max_generations=3, population_size=8, capacity=64, warmup_samples=8,
+                 num_batches=2)
+    with pytest.warns(diagnostics.RunWarning, match=match) as caught:
+        _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
+    caught = [w for w in caught if w.category is diagnostics.RunWarning]
+    assert len(caught) == 1
+    counts = {k: int(np.sum(metrics[k])) for k in ("out_of_range", "out_of_box", "invalid")}
+    key = {"scale": "out_of_range", "offset": "out_of_box", "valid": "invalid"}[next(iter(changes))]
+    assert counts[key] > 0 and str(counts[key]) in str(caught[0].message)
+    assert all(v == 0 for k, v in counts.items() if k != key)
+
+
+def test_a_sound_run_does_not_warn():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", diagnostics.RunWarning)
+        run_mqd(jax.random.PRNGKey(0), Config(max_generations=2, population_size=8, capacity=64))
