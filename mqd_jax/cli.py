@@ -257,7 +257,8 @@ def _adapt(args: argparse.Namespace) -> None:
                                    "wall_s": time.perf_counter() - start}
                 print(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps {out.steps.mean():.2f}, "
                       f"{methods[method]['wall_s']:.1f} s", flush=True)
-            found[task] = {"source": results.source(args.dir, task), "methods": methods}
+            found[task] = {"source": results.source(args.dir, task), "config": dataclasses.asdict(cfg),
+                           "keys": keys, "provenance": provenance(), "methods": methods}
             results.remove_derived(args.dir)
             results.write_json(path, found)
         _plot(args.dir)

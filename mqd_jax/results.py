@@ -13,8 +13,8 @@ One folder per sweep. For every task and algorithm run:
   (`mqd_jax.checkpoint`) with keys [S, 2]: what `mqd adapt` adapts.
 
 `mqd adapt` adds `adaptation.json` ({task: {"source": the SHA-256 of the
-`<task>_mqd.msgpack` it adapted, "methods": {method: {"error", "steps",
-"reached"}: one value per repertoire}}}). Tables and figures (`DERIVED`) are
+`<task>_mqd.msgpack` it adapted, "config", "keys", "provenance", "methods":
+{method: {"error", "steps", "reached"}: one value per repertoire}}}). Tables and figures (`DERIVED`) are
 markdown and PNG built from these files only, so a folder can be copied and
 re-tabulated anywhere.
 
@@ -111,21 +111,26 @@ def _comparable(cfg: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in cfg.items() if k != "algorithm"}
 
 
+def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], keys: list) -> dict[str, str]:
+    """{stem: what differs} for each of `batches` of the same task as `cfg` with another config or other keys."""
+    found = {}
+    for stem, saved in batches:
+        if saved["config"].get("task") != cfg["task"]:
+            continue
+        differ = differences(_comparable(saved["config"]), _comparable(cfg))
+        if saved["keys"] != keys:
+            differ = ", ".join(filter(None, [differ, f"{len(saved['keys'])} other seed keys, now {len(keys)}"]))
+        if differ:
+            found[stem] = differ
+    return found
+
+
 def conflicts(out: str, cfg: Config, keys: np.ndarray) -> dict[str, str]:
     """{stem: what differs} for each batch in `out` that a batch of `cfg` from `keys` may not sit beside.
 
     The batches of one task must share their config (the algorithm aside) and their keys.
     """
-    want, found = _comparable(dataclasses.asdict(cfg)), {}
-    for stem, saved in _batches(out):
-        if saved["config"].get("task") != cfg.task:
-            continue
-        differ = differences(_comparable(saved["config"]), want)
-        if saved["keys"] != np.asarray(keys).tolist():
-            differ = ", ".join(filter(None, [differ, f"{len(saved['keys'])} other seed keys, now {len(keys)}"]))
-        if differ:
-            found[stem] = differ
-    return found
+    return _clashes(_batches(out), dataclasses.asdict(cfg), np.asarray(keys).tolist())
 
 
 def remove_batches(out: str, stems: list[str]) -> None:
@@ -224,12 +229,13 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
     task that differ in config (but for the algorithm) or seed keys.
     """
     found: dict[str, dict[str, Runs]] = {}
-    for stem, saved in _batches(out):
+    batches = _batches(out)
+    for stem, saved in batches:
         try:
             cfg = Config(**saved["config"])
         except (TypeError, ValueError) as e:
             raise ValueError(f"{stem + '.json'!r} holds an invalid config: {e}") from e
-        differ = conflicts(out, cfg, np.asarray(saved["keys"]))
+        differ = _clashes(batches, saved["config"], saved["keys"])
         if differ:
             raise ValueError(f"{out!r} mixes runs that cannot be compared: {os.path.basename(stem)} and "
                              + "; ".join(f"{os.path.basename(s)} differ ({d})" for s, d in differ.items()))

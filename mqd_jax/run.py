@@ -17,6 +17,14 @@ from mqd_jax.task import Task, check_outputs
 
 # Nearest pre-generation skills precomputed per candidate (see repertoire.py).
 _NUM_NEAR = 4
+# A generation's metrics (scalars; see `run_mqd`) and their dtypes: what a skipped generation reports (zeros)
+# without tracing a generation to find out.
+METRICS = {
+    "coverage": jnp.float32, "mean_quality": jnp.float32, "repertoire_size": jnp.int32,
+    "num_evaluations": jnp.int32, "evaluations": jnp.int32, "added": jnp.int32, "replaced": jnp.int32,
+    "rejected": jnp.int32, "dropped_full": jnp.int32, "invalid": jnp.int32, "out_of_range": jnp.int32,
+    "out_of_box": jnp.int32, "discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
+}
 
 
 @struct.dataclass
@@ -152,17 +160,18 @@ class Candidates:
     discarded: jax.Array
 
 
-def _params(cfg: Config, params: Params | None) -> Params:
-    # The barrier keeps XLA from folding the config's constants into the
-    # arithmetic, which would round differently from passing the same values.
-    return jax.lax.optimization_barrier(cfg.params()) if params is None else params
+def _checked(state: State, cfg: Config, params: Params | None) -> Params:
+    """The checks every entry point makes before tracing (the state fits `cfg`, concrete params are valid); the
+    params to pass on.
 
-
-def _checked(state: State, cfg: Config, params: Params | None) -> None:
-    """The checks every entry point makes before tracing: the state fits `cfg`, concrete params are valid."""
+    `None` becomes `cfg.params()`, passed as arguments like any other values: one compiled program serves the
+    config's own values and others, and XLA cannot fold them in as constants (which would round differently).
+    """
     check_state(state, cfg)
-    if params is not None:
-        check_params(params, cfg)
+    if params is None:
+        return cfg.params()
+    check_params(params, cfg)
+    return params
 
 
 def ask(state: State, cfg: Config, params: Params | None = None) -> Candidates:
@@ -171,13 +180,12 @@ def ask(state: State, cfg: Config, params: Params | None = None) -> Candidates:
     Uses `state.key` and does not advance it: `tell` does. Pure and jitted.
     Raises ValueError for a state of another config or invalid concrete params.
     """
-    _checked(state, cfg, params)
-    return _ask(state, cfg, params)
+    return _ask(state, cfg, _checked(state, cfg, params))
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
-def _ask(state: State, cfg: Config, params: Params | None) -> Candidates:
-    params, task, pop = _params(cfg, params), get_task(cfg), cfg.population_size
+def _ask(state: State, cfg: Config, params: Params) -> Candidates:
+    task, pop = get_task(cfg), cfg.population_size
     _, k_cand, k_eval, _ = jax.random.split(state.key, 4)
     if cfg.algorithm != "mqd":
         actions = _candidates(k_cand, state, cfg, params, task, pop)
@@ -230,7 +238,7 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
     Returns:
       The next state (key advanced) and the generation's metrics (see `run_mqd`).
     """
-    _checked(state, cfg, params)
+    params = _checked(state, cfg, params)
     behaviors, qualities, valid = (jnp.asarray(x) for x in (behaviors, qualities, valid))
     _check_results(behaviors, qualities, valid, cfg.population_size, get_task(cfg).behavior_dim)
     return _tell(state, candidates, behaviors, qualities, valid, cfg, params)
@@ -238,8 +246,8 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
-          cfg: Config, params: Params | None) -> tuple[State, dict[str, jax.Array]]:
-    params, task, pop = _params(cfg, params), get_task(cfg), cfg.population_size
+          cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
+    task, pop = get_task(cfg), cfg.population_size
     key, _, _, k_train = jax.random.split(state.key, 4)
     actions = candidates.actions
     ok = candidates.evaluate & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
@@ -315,8 +323,7 @@ def run_generations(state: State, cfg: Config, params: Params, num: int,
     """
     if todo is None:
         return jax.lax.scan(lambda s, _: generation(s, cfg, params), state, None, length=num)
-    shapes = jax.eval_shape(lambda s: generation(s, cfg, params), state)[1]
-    skipped = jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes)
+    skipped = {name: jnp.zeros((), dtype) for name, dtype in METRICS.items()}
     return jax.lax.scan(lambda s, i: jax.lax.cond(i < todo, lambda: generation(s, cfg, params), lambda: (s, skipped)),
                         state, jnp.arange(num))
 
@@ -350,8 +357,9 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
     niches, qualities outside the task's quality range, behaviors outside
     the behavior box, and runs whose every rollout was invalid.
     """
-    if params is not None:
-        check_params(params, cfg)
+    if params is None:
+        params = cfg.params()  # as arguments: the same compiled run for the config's values and others
+    check_params(params, cfg)
     state, metrics = _run_mqd(key, cfg, params)
     if not any(isinstance(m, jax.core.Tracer) for m in metrics.values()):  # concrete: not inside a jit or vmap
         diagnostics.warn(jax.device_get(metrics), cfg, get_task(cfg))
@@ -359,5 +367,5 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
-def _run_mqd(key: jax.Array, cfg: Config, params: Params | None) -> tuple[State, dict[str, jax.Array]]:
-    return run_generations(init(key, cfg), cfg, _params(cfg, params), cfg.max_generations)
+def _run_mqd(key: jax.Array, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
+    return run_generations(init(key, cfg), cfg, params, cfg.max_generations)

@@ -107,6 +107,9 @@ def test_sweep_refuses_a_batch_of_another_config_before_running_anything(tmp_pat
 
 def test_tables_refuse_a_folder_whose_batches_were_mixed_by_hand(tmp_path):
     sweep(tmp_path, "--algorithms", "qd", "random", "--seeds", "2")
+    # Not the paper's settings, so no paper values beside them, and the table says why.
+    table = (tmp_path / "table1.md").read_text()
+    assert "(paper" not in table and "shown only beside runs with Table II's settings" in table
     path = tmp_path / "obstacle2d_random.json"
     saved = json.loads(path.read_text())
     saved["config"]["t_dist"] = 0.03
@@ -120,6 +123,8 @@ def test_adaptation_of_replaced_mqd_runs_is_left_out_and_tables_are_remade(tmp_p
     sweep(tmp_path, *mqd)
     cli.main(["adapt", str(tmp_path), "--goals", "3"])
     assert (tmp_path / "adaptation.md").exists()
+    entry = json.loads((tmp_path / "adaptation.json").read_text())["obstacle2d"]
+    assert entry["config"]["t_nov"] == 0.04 and entry["provenance"]["versions"]["jax"] == jax.__version__
     sweep(tmp_path, *mqd, "--t-nov", "0.01", "--overwrite")  # other M-QD runs: the adaptation results are stale
     out = capsys.readouterr().out
     assert "left out the adaptation results of obstacle2d" in out
@@ -130,19 +135,15 @@ def test_adaptation_of_replaced_mqd_runs_is_left_out_and_tables_are_remade(tmp_p
 
 
 def test_saving_a_batch_removes_the_tables_made_before_it(tmp_path):
-    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
-    assert (tmp_path / "table1.md").exists()
+    made = ["table1.md", "adaptation.md", "fig2_obstacle2d.png", "fig3_adaptation_error.png"]
+    for name in made:
+        (tmp_path / name).write_text("made from earlier results")
     cfg = Config(max_generations=3, population_size=8, capacity=64, algorithm="random")
     keys = np.asarray(seed_keys(2))
     states, metrics = run_batch(cfg, keys)
     results.save_runs(str(tmp_path), cfg, keys, states, metrics, 1.0)
-    assert not (tmp_path / "table1.md").exists() and not (tmp_path / "fig2_obstacle2d.png").exists()
-
-
-def test_paper_values_appear_only_beside_runs_with_the_papers_settings(tmp_path):
-    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
-    table = (tmp_path / "table1.md").read_text()
-    assert "(paper" not in table and "shown only beside runs with Table II's settings" in table
+    assert not any((tmp_path / name).exists() for name in made)
+    assert (tmp_path / "obstacle2d_random.json").exists()
 
 
 # Case 3: one writer at a time.
