@@ -181,12 +181,12 @@ def _run(args: argparse.Namespace) -> None:
         state, metrics = checkpoint.run_with_checkpoints(
             key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
             on_compiled=progress.compiled, on_chunk=lambda s, m: progress.chunk(int(s.generation), m))
-        meta = {"config": dataclasses.asdict(cfg), "seed": args.seed, "key": np.asarray(key),
+        meta = {"config": dataclasses.asdict(cfg), "seed": args.seed, "key": np.asarray(key).tolist(),
                 "provenance": provenance()}
         results.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
         n = int(state.repertoire.count)
         rep = jax.device_get(state.repertoire)
-        description = json.dumps({**meta, "key": meta["key"].tolist()})
+        description = json.dumps(meta)
         folders.write_npz(os.path.join(args.out, "repertoire.npz"), actions=rep.actions[:n],
                           behaviors=rep.behaviors[:n], qualities=rep.qualities[:n], meta=np.asarray(description))
         title = f"{cfg.task}, {cfg.algorithm}, seed {args.seed}, {cfg.max_generations} generations"
@@ -210,11 +210,10 @@ def _sweep(args: argparse.Namespace) -> None:
         _say_removed(leftovers, "left by an interrupted writer")
         _say_removed(folders.claim(args.out, "sweep", {}, results.FILES, args.overwrite), "--overwrite")
         # Every conflict is found before anything runs, not after hours of other batches.
-        clash = {s: d for cfg, keys in batches for s, d in results.conflicts(args.out, cfg, keys).items()}
+        clash = results.conflicts(args.out, batches)
         if clash and not args.overwrite:
-            raise ValueError(f"{args.out!r} refused: " + "; ".join(
-                f"{os.path.basename(s)} differs ({d})" for s, d in clash.items())
-                + ". Pass --overwrite to replace those batches, or write to another folder")
+            raise ValueError(f"{args.out!r} refused: {results.describe(clash)}. Pass --overwrite to replace those "
+                             "batches, or write to another folder")
         results.remove_batches(args.out, list(clash))
         _say_removed([s + ".json" for s in clash], "--overwrite")
         for cfg, keys in batches:

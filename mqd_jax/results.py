@@ -125,12 +125,20 @@ def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], key
     return found
 
 
-def conflicts(out: str, cfg: Config, keys: np.ndarray) -> dict[str, str]:
-    """{stem: what differs} for each batch in `out` that a batch of `cfg` from `keys` may not sit beside.
+def conflicts(out: str, planned: list[tuple[Config, np.ndarray]]) -> dict[str, str]:
+    """{stem: what differs} for each batch in `out` that one of the `planned` batches (config, keys) may not sit
+    beside. The batches of one task must share their config (the algorithm aside) and their keys.
 
-    The batches of one task must share their config (the algorithm aside) and their keys.
+    Reads the folder once, however many batches are planned.
     """
-    return _clashes(_batches(out), dataclasses.asdict(cfg), np.asarray(keys).tolist())
+    batches = _batches(out)
+    return {stem: differ for cfg, keys in planned
+            for stem, differ in _clashes(batches, dataclasses.asdict(cfg), np.asarray(keys).tolist()).items()}
+
+
+def describe(clash: dict[str, str]) -> str:
+    """'<batch> differs (<fields>); ...' for the clashing batches of `conflicts`."""
+    return "; ".join(f"{os.path.basename(stem)} differs ({differ})" for stem, differ in clash.items())
 
 
 def remove_batches(out: str, stems: list[str]) -> None:
@@ -164,10 +172,9 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
     Raises ValueError if `out` holds batches that conflict with it (`conflicts`);
     removes the tables and figures made from the folder's earlier results.
     """
-    differ = conflicts(out, cfg, keys)
-    if differ:
-        raise ValueError(f"{out!r} refused: " + "; ".join(f"{os.path.basename(s)} differs ({d})"
-                                                        for s, d in differ.items()))
+    clash = conflicts(out, [(cfg, keys)])
+    if clash:
+        raise ValueError(f"{out!r} refused: {describe(clash)}")
     os.makedirs(out, exist_ok=True)
     remove_derived(out)
     stem = _stem(out, cfg.task, cfg.algorithm)
@@ -235,10 +242,10 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
             cfg = Config(**saved["config"])
         except (TypeError, ValueError) as e:
             raise ValueError(f"{stem + '.json'!r} holds an invalid config: {e}") from e
-        differ = _clashes(batches, saved["config"], saved["keys"])
-        if differ:
-            raise ValueError(f"{out!r} mixes runs that cannot be compared: {os.path.basename(stem)} and "
-                             + "; ".join(f"{os.path.basename(s)} differ ({d})" for s, d in differ.items()))
+        clash = _clashes(batches, saved["config"], saved["keys"])
+        if clash:
+            raise ValueError(f"{out!r} mixes runs that cannot be compared: beside {os.path.basename(stem)}, "
+                             f"{describe(clash)}")
         rep = _load_npz(stem + ".npz")
         metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
         found.setdefault(cfg.task, {})[cfg.algorithm] = Runs(
