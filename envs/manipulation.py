@@ -25,10 +25,19 @@ from mqd_jax.task import Region, Task
 
 BACKENDS = ("auto", "mujoco", "mjx")
 SETTLE = 100
+# The paper's Table I: final coverage (mean, std) per scene and preset.
+PAPER_COVERAGE = {
+    "push_cube": {"mqd": (0.828, 0.059), "qd": (0.709, 0.047), "random": (0.216, 0.073)},
+    "push_sphere": {"mqd": (0.685, 0.0185), "qd": (0.560, 0.009), "random": (0.171, 0.004)},
+    "place": {"mqd": (0.639, 0.034), "qd": (0.524, 0.009), "random": (0.349, 0.001)},
+}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Manipulation(Task):
+    table_ii_column = "robot"
+    paper_seeds = 10
+
     scene: str = "push_cube"
     backend: str = "auto"
     horizon: int = 400  # steps of 4 ms
@@ -118,12 +127,18 @@ class Manipulation(Task):
                 (x, y), (sx, sy) = model.geom_pos[g][:2], model.geom_size[g][:2]
                 top = model.geom_pos[g][2] + model.geom_size[g][2]
                 label = name.replace("_", " ") + ("" if name == "table" else f" (top {100 * top:.0f} cm)")
-                parts.append(Region(label, (x - sx, y - sy), (x + sx, y + sy)))
+                colour = (0.88, 0.8, 0.66) if name == "table" else (0.62, 0.45, 0.28)
+                parts.append(Region(label, (x - sx, y - sy), (x + sx, y + sy), colour=colour))
         body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
         r = float(model.geom_size[model.body_geomadr[body]][0])
         (cx, cy) = kuka.TABLE_CENTRE
         return (*parts, Region("via-point reach", kuka.REACH_LOW, kuka.REACH_HIGH, filled=False),
-                Region("object start", (cx - r, cy - r), (cx + r, cy + r)))
+                Region("object start", (cx - r, cy - r), (cx + r, cy + r), colour="tab:red"))
+
+    @property
+    def paper_coverage(self) -> dict[str, tuple[float, float]]:
+        """Table I of the paper for this scene."""
+        return PAPER_COVERAGE.get(self.scene, {})
 
     def ee_path_length(self, sensors: jax.Array) -> jax.Array:
         """[B] distance travelled by the end effector (the scene's first sensor, "ee_pos")."""

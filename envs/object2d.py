@@ -12,6 +12,7 @@ from its start (1 if it never moved).
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import numpy as np
@@ -36,6 +37,9 @@ def _separate(mover: arena2d.Array, fixed: arena2d.Array, gap: float) -> arena2d
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Object2D(Task):
+    paper_coverage: ClassVar[dict[str, tuple[float, float]]] = {
+        "mqd": (0.504, 0.073), "qd": (0.366, 0.064), "random": (0.035, 0.002)}
+
     agent_start: tuple[float, float] = AGENT_START
     object_start: tuple[float, float] = OBJECT_START
 
@@ -65,9 +69,10 @@ class Object2D(Task):
         return np.all((points >= lo) & (points <= hi), axis=-1)
 
     def layout(self) -> tuple[Region, ...]:
-        disk = lambda label, c, r: Region(label, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r), "disk")  # noqa: E731
-        return (disk("object start", self.object_start, OBJECT_RADIUS),
-                disk("agent start", self.agent_start, AGENT_RADIUS))
+        disk = lambda label, c, r, colour: Region(label, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r),  # noqa: E731
+                                                  "disk", colour=colour)
+        return (disk("object start", self.object_start, OBJECT_RADIUS, "tab:red"),
+                disk("agent start", self.agent_start, AGENT_RADIUS, "tab:green"))
 
 
 def make() -> Object2D:

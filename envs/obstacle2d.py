@@ -10,6 +10,7 @@ a visibility graph over the start and the corners, solved once on the host.
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import numpy as np
@@ -68,6 +69,9 @@ def _graph(start: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Obstacle2D(Task):
+    paper_coverage: ClassVar[dict[str, tuple[float, float]]] = {
+        "mqd": (0.971, 0.018), "qd": (0.875, 0.017), "random": (0.731, 0.004)}
+
     start: tuple[float, float] = START
     obstacles: tuple[tuple[float, float, float, float], ...] = OBSTACLES
 
@@ -111,8 +115,8 @@ class Obstacle2D(Task):
     def layout(self) -> tuple[Region, ...]:
         r = AGENT_MARK
         start = Region("agent start", (self.start[0] - r, self.start[1] - r), (self.start[0] + r, self.start[1] + r),
-                       "disk")
-        return (*(Region("obstacle", (x0, y0), (x1, y1)) for x0, y0, x1, y1 in self.obstacles), start)
+                       "disk", colour="tab:green")
+        return (*(Region("obstacle", (x0, y0), (x1, y1), colour="0.35") for x0, y0, x1, y1 in self.obstacles), start)
 
 
 def make() -> Obstacle2D:

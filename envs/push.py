@@ -49,3 +49,13 @@ def make(scene: str, height: float, backend: str = "auto", t_max: float = T_MAX,
     high = (x1, y1, h, t_max) * VIA_POINTS
     return Push(low, high, kuka.TABLE_LOW, kuka.TABLE_HIGH, scene=scene, height=height, backend=backend,
                 horizon=VIA_POINTS * math.ceil(t_max) + settle)
+
+
+def cube(backend: str = "auto") -> Push:
+    """PushCube (registered as "push_cube")."""
+    return make("push_cube", 0.025, backend=backend)
+
+
+def sphere(backend: str = "auto") -> Push:
+    """PushSphere (registered as "push_sphere")."""
+    return make("push_sphere", 0.03, backend=backend)

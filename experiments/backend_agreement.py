@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-import envs
 from envs import kuka
+from mqd_jax import registry
 
 
 def main() -> None:
@@ -31,7 +31,7 @@ def main() -> None:
     args = parser.parse_args()
     out = {}
     for backend in ("mujoco", "mjx"):
-        task = envs.make(args.task, backend=backend)
+        task = registry.make(args.task, backend=backend)
         low, high = jnp.asarray(task.action_low), jnp.asarray(task.action_high)
         actions = jax.random.uniform(jax.random.PRNGKey(0), (args.actions, len(low)), minval=low, maxval=high)
         out[backend] = [np.asarray(x) for x in jax.jit(task.evaluate)(actions, None)]

@@ -26,7 +26,7 @@ import numpy as np
 import report
 from mujoco import rollout
 
-import envs
+from mqd_jax import registry
 
 
 def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
@@ -51,7 +51,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="results/bench_physics.md")
     args = parser.parse_args()
-    c_task = envs.make(args.task, backend="mujoco")
+    c_task = registry.make(args.task, backend="mujoco")
     low, high = jnp.asarray(c_task.action_low), jnp.asarray(c_task.action_high)
 
     def actions(pop: int) -> jax.Array:
@@ -73,7 +73,7 @@ def main() -> None:
     ik_s, ik_compile = _time(lambda: controls(a), args.repeats)
     rows.append(("  of which IK and trajectories", pop, ik_s, ik_compile))
     if args.mjx_populations:
-        mjx_task = envs.make(args.task, backend="mjx")
+        mjx_task = registry.make(args.task, backend="mjx")
         mjx_evaluate = jax.jit(mjx_task.evaluate)
         for n in args.mjx_populations:
             b = actions(n)

@@ -4,8 +4,8 @@
 
 Runs `--grow` generations first (paper 2D settings), then times, from that
 state, the whole generation and its stages as separately jitted functions
-(median of `--repeats` calls): ask (variation and, for M-QD, the model's
-filter), rollouts, insertion (distance matrix, nearest-skill search,
+(median of `--repeats` calls): ask (the emitter's proposal: variation and, for
+M-QD, the model's acquisition), rollouts, insertion (distance matrix, nearest-skill search,
 sequential rule, neighbour lists, novelty), coverage stamp and model training.
 Stages timed alone do not add up exactly to the fused generation.
 """
@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import report
 
-from mqd_jax import Config, coverage, init, model, repertoire
+from mqd_jax import Config, ModelEmitter, coverage, init, model, presets, repertoire
 from mqd_jax.run import _NUM_NEAR, ask, generation, get_task, run_generations
 
 
@@ -49,18 +49,20 @@ def main() -> None:
     key = jax.random.PRNGKey(1)
     proposal = ask(state, cfg, params)
     b, q, ok = task.evaluate(proposal.actions, key)
-    ok = ok & proposal.evaluate
+    ok = ok & proposal.rollout
     stages = {
         "whole generation": jax.jit(lambda s: generation(s, cfg, params)),
-        "ask (variation, filter)": jax.jit(lambda s: ask(s, cfg, params)),
+        "ask (variation, acquisition)": jax.jit(lambda s: ask(s, cfg, params)),
         "rollouts": jax.jit(lambda s: task.evaluate(proposal.actions, key)),
         "insertion (incl. neighbours, novelty)": jax.jit(lambda s: repertoire.insert(
             s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, _NUM_NEAR, chunk=32)),
         "coverage stamp": jax.jit(lambda s: coverage.stamp(s.coverage, b, ok.astype(jnp.int32), params.t_dist)),
     }
-    if cfg.algorithm == "mqd":
-        stages["model training (500 Adam steps)"] = jax.jit(
-            lambda s: model.train(s.model, key, s.repertoire, cfg, task, params.learning_rate))
+    emitter = presets.emitter(cfg)
+    if isinstance(emitter, ModelEmitter):
+        stages[f"model training ({emitter.num_batches} Adam steps)"] = jax.jit(
+            lambda s: model.train(s.emitter.model, key, s.repertoire, task, params.learning_rate, emitter.batch_size,
+                                  emitter.num_batches))
     print(f"{args.task}, {args.algorithm}, repertoire of {int(state.repertoire.count)} skills after {args.grow} "
           f"generations (capacity {cfg.capacity}); {report.machine()}; median of {args.repeats} calls.\n")
     print("| stage | ms |\n|---|---|")

@@ -19,8 +19,7 @@ import jax
 import numpy as np
 import report
 
-import envs
-from mqd_jax import Config, plots, run_mqd
+from mqd_jax import Config, plots, registry, run_mqd
 
 
 def main() -> None:
@@ -59,7 +58,7 @@ def _plot(behaviors: dict[str, np.ndarray], path: str, task: str) -> None:
         return
     fig, axes = plt.subplots(1, len(behaviors), figsize=(5 * len(behaviors), 5))
     for ax, (alg, b) in zip(np.atleast_1d(axes), behaviors.items(), strict=True):
-        plots.repertoire(ax, envs.make(task), b, f"{task}: {alg}")
+        plots.repertoire(ax, registry.make(task), b, f"{task}: {alg}")
     plots.save(fig, path)
 
 

@@ -1,9 +1,35 @@
 """mqd-jax: Model-Based Quality-Diversity search in JAX."""
 
+from mqd_jax.acquisition import Budgeted, Threshold
 from mqd_jax.adaptation import Adapted, adapt
 from mqd_jax.config import Config, Params
+from mqd_jax.emitters import Emitter, Evaluated, IsoLine, Proposal, Uniform
+from mqd_jax.model_emitter import ModelEmitter
+from mqd_jax.repertoire import AddStatus
 from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
 from mqd_jax.task import Task
 
-__all__ = ["Adapted", "Candidates", "Config", "Params", "State", "Task", "adapt", "ask", "generation", "init",
-           "run_generations", "run_mqd", "tell"]
+__all__ = [
+           "Adapted",
+           "AddStatus",
+           "Budgeted",
+           "Candidates",
+           "Config",
+           "Emitter",
+           "Evaluated",
+           "IsoLine",
+           "ModelEmitter",
+           "Params",
+           "Proposal",
+           "State",
+           "Task",
+           "Threshold",
+           "Uniform",
+           "adapt",
+           "ask",
+           "generation",
+           "init",
+           "run_generations",
+           "run_mqd",
+           "tell",
+]

@@ -33,8 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mqd_jax import model, neighbours
+from mqd_jax import model, neighbours, presets
 from mqd_jax.config import Config, Params, check_params
+from mqd_jax.model_emitter import ModelEmitter
 from mqd_jax.run import State, check_state, get_task
 from mqd_jax.task import Task
 
@@ -80,7 +81,7 @@ def _linear_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
 
 def _model_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
     """J [G, d, n] of the model's behavior prediction (real units) at each a_j."""
-    behavior = lambda a: model.predict(state.model, a, cfg, task)[0]  # noqa: E731
+    behavior = lambda a: presets.emitter(cfg).predict(state.emitter, a, task)[0]  # noqa: E731
     return lambda a, b: jax.vmap(jax.jacfwd(behavior))(a)
 
 
@@ -118,17 +119,21 @@ def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: 
 def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task) -> None:
     if method not in METHODS:
         raise ValueError(f"method={method!r} is invalid: expected one of {METHODS}")
+    if method == "model" and not isinstance(presets.emitter(cfg), ModelEmitter):
+        raise ValueError(f"method 'model' needs a run whose emitter is a ModelEmitter (M-QD), not "
+                         f"{cfg.algorithm!r}: a QD or RANDOM run has no model")
     # Only what adaptation reads: t_dist may differ from the run's, and with it the coverage grid's stamp.
-    check_state(state, cfg, batch=np.shape(state.repertoire.count), fields=("repertoire", "model"))
+    check_state(state, cfg, batch=np.shape(state.repertoire.count), fields=("repertoire", "emitter"))
     if goals.ndim < 2 or goals.shape[-1] != task.behavior_dim:
-        raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
+        raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task "
+                         f"{cfg.task_name!r}")
     if isinstance(state.repertoire.count, jax.core.Tracer):
         return
     if (np.asarray(state.repertoire.count) == 0).any():
         raise ValueError("the repertoire is empty: run the search first")
-    if method == "model" and (np.asarray(state.model.steps) == 0).any():
+    if method == "model" and (np.asarray(state.emitter.model.steps) == 0).any():
         raise ValueError("method 'model' needs a trained model: this state's model never trained "
-                         "(a QD or RANDOM run, or an M-QD run that did not finish warm-up)")
+                         "(an M-QD run that did not finish warm-up)")
 
 
 def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str,
@@ -137,7 +142,8 @@ def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: s
 
     Args:
       state: a run's state (from `run_mqd` or `run_generations`); "model" needs
-        an M-QD state whose model has trained.
+        the state of a run whose emitter is a `ModelEmitter` (M-QD) whose model
+        has trained.
       goals: [G, d] desired behaviors (anywhere; outside the behavior box too).
       key: PRNG key for the rollouts.
       cfg: the run's config (t_dist, adaptation_step_size, adaptation_steps, k).
@@ -154,7 +160,8 @@ def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: s
     if params is not None:
         check_params(params, cfg)
     if goals.ndim != 2:
-        raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task {cfg.task!r}")
+        raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task "
+                         f"{cfg.task_name!r}")
     return _adapt(state, goals, key, cfg, method, cfg.params() if params is None else params)
 
 

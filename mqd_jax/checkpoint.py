@@ -3,13 +3,15 @@
 A checkpoint is one msgpack file (`flax.serialization`): a format version, a
 SHA-256 checksum and a body holding the run's config (every field), the key
 the run started from, the whole `State` (repertoire, rejected archive, coverage
-grid, model parameters and Adam state, key, generation, evaluation count), the
+grid, the emitter's state (M-QD: model parameters and Adam state), key,
+generation, evaluation count), the
 per-generation metrics so far and the provenance (package versions, git
 revision). `save` writes a temporary file and renames it over the old one, so a
 crash leaves either the previous checkpoint or the new one, never half of one.
 `load` refuses, with a ValueError, a file that is not a checkpoint, is corrupt
 or was altered (checksum), and one written for another config, task or key.
-Files of the older formats 1 and 2 (no checksum) still load.
+Files of the older formats 1 to 3 (1 and 2 without checksum; M-QD's model
+outside the emitter's state) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -18,7 +20,6 @@ every state array carrying a leading [S] axis.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import os
 from collections.abc import Callable
@@ -30,12 +31,12 @@ import numpy as np
 from flax import serialization
 
 from mqd_jax import diagnostics
-from mqd_jax.config import Config, Params, check_params
+from mqd_jax.config import Config, Params, check_params, upgraded
 from mqd_jax.folders import differences, write_atomically
 from mqd_jax.provenance import provenance
 from mqd_jax.run import State, check_state, get_task, init, run_generations
 
-FORMAT = 3
+FORMAT = 4
 Metrics = dict[str, np.ndarray]
 
 
@@ -45,10 +46,29 @@ def _from_format_1(state: dict[str, Any]) -> dict[str, Any]:
     return {**state, "coverage": coverage}
 
 
+def _from_format_3(state: dict[str, Any], fresh: dict[str, Any], cfg: Config) -> dict[str, Any]:
+    """Formats 1-3 kept M-QD's model in `state["model"]` with Adam's state alone (QD and RANDOM an untrained
+    one); since format 4 the model emitter's state holds it, Adam's state inside optax.inject_hyperparams'.
+    `fresh`: the state dict of a new run of `cfg`, whose emitter state is filled in."""
+    state = dict(state)
+    old, emitter = state.pop("model"), fresh["emitter"]
+    if "model" in emitter:
+        model = emitter["model"]
+        opt_state = model["opt_state"]
+        opt_state["inner_state"]["0"] = old["opt_state"]
+        opt_state["count"] = old["steps"]
+        # The rate `train` last set, for a run with the config's own params.
+        opt_state["hyperparams"]["learning_rate"] = np.full_like(opt_state["hyperparams"]["learning_rate"],
+                                                                 cfg.learning_rate)
+        model.update(params=old["params"], steps=old["steps"])
+        emitter["evaluations"] = state["num_evaluations"]
+    return {**state, "emitter": emitter}
+
+
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
     body = serialization.msgpack_serialize({
-        "config": dataclasses.asdict(cfg),
+        "config": cfg.to_dict(),
         "key": np.asarray(key),
         "state": serialization.to_state_dict(jax.device_get(state)),
         "metrics": {k: np.asarray(v) for k, v in metrics.items()},
@@ -76,13 +96,13 @@ def _read(path: str) -> dict[str, Any]:
             payload: Any = _restore(path, f.read())
     except OSError as e:
         raise _refuse(path, f"cannot read it ({e})") from e
-    if not isinstance(payload, dict) or payload.get("format") not in (1, 2, FORMAT):
+    if not isinstance(payload, dict) or payload.get("format") not in range(1, FORMAT + 1):
         raise _refuse(path, f"not an mqd-jax checkpoint of format 1 to {FORMAT}")
-    if payload["format"] == FORMAT:
+    if payload["format"] >= 3:
         body = payload.get("body")
         if not isinstance(body, bytes) or hashlib.sha256(body).hexdigest() != payload.get("sha256"):
             raise _refuse(path, "its checksum does not match: the file was altered or damaged")
-        payload = _restore(path, body)
+        payload = {**_restore(path, body), "format": payload["format"]}
     elif payload["format"] == 1:
         payload["state"] = _from_format_1(payload["state"])
     return payload
@@ -91,7 +111,7 @@ def _read(path: str) -> dict[str, Any]:
 def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     """The state and metrics saved in `path` by a run of `cfg` started from `key`."""
     payload = _read(path)
-    differ = differences(payload["config"], dataclasses.asdict(cfg))
+    differ = differences(upgraded(payload["config"]), cfg.to_dict())
     if differ:
         raise _refuse(path, f"it was written with another config ({differ})")
     if not np.array_equal(payload["key"], np.asarray(key)):
@@ -100,6 +120,9 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     # Shapes only; a batch of runs (keys [S, 2]) saved its states with a leading [S] axis.
     start = (lambda k: init(k, cfg)) if key.ndim == 1 else jax.vmap(lambda k: init(k, cfg))
     template = jax.eval_shape(start, key)
+    if payload["format"] < FORMAT:
+        payload["state"] = _from_format_3(payload["state"], serialization.to_state_dict(jax.device_get(start(key))),
+                                          cfg)
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

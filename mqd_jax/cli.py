@@ -26,13 +26,13 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-import envs
-from mqd_jax import adaptation, checkpoint, folders, plots, results, sweep
-from mqd_jax.config import ALGORITHMS, Config
+from mqd_jax import adaptation, checkpoint, folders, plots, registry, results, sweep
+from mqd_jax.config import PRESETS, Config
 from mqd_jax.provenance import provenance
 from mqd_jax.run import State, get_task
 
-PRESETS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
+# Table II's columns, for `--preset`.
+COLUMNS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
 # Short flags kept from the first versions of the CLI.
 _ALIASES = {"max_generations": ["--generations"], "population_size": ["--population"]}
 _PER_TASK = ("task", "algorithm")  # `sweep` takes these as lists
@@ -63,7 +63,7 @@ def compilation_cache(enabled: bool) -> str | None:
 
 
 def _task_names() -> str:
-    return ", ".join(envs.registered_tasks()) + ", or a plugin package.module:factory"
+    return ", ".join(registry.registered_tasks()) + ", or a plugin package.module:factory"
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (), preset: str = "paper-2d",
@@ -72,16 +72,15 @@ def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (
 
     The help of each flag shows the value it takes when not given (the preset's, after `defaults`).
     """
-    choices = sorted(PRESETS) + ([] if preset in PRESETS else [preset])
+    choices = sorted(COLUMNS) + ([] if preset in COLUMNS else [preset])
     parser.add_argument("--preset", choices=choices, default=preset,
                         help="Table II's column the unset flags take: paper-2d, paper-robot" +
                              (", auto: paper-robot for the robot tasks, else paper-2d" if preset == "auto" else "") +
                              " (default: %(default)s)")
-    base = PRESETS[preset](**(defaults or {})) if preset in PRESETS else None
-    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(ALGORITHMS)}",
+    base = COLUMNS[preset](**(defaults or {})) if preset in COLUMNS else None
+    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(PRESETS)}",
                 "budgeted": "M-QD: roll out the pool_factor x population candidates the model ranks best "
-                            "(instead of the paper's threshold filter)",
-                "physics_backend": "robot tasks: auto, mujoco (C MuJoCo) or mjx"}
+                            "(instead of the paper's threshold filter)"}
     for field in dataclasses.fields(Config):
         if field.name in skip:
             continue
@@ -100,7 +99,7 @@ def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(Config)
              if getattr(args, f.name, None) is not None}
     given.update(fixed)
-    preset = Config.paper if args.preset == "auto" else PRESETS[args.preset]
+    preset = Config.paper if args.preset == "auto" else COLUMNS[args.preset]
     return preset(**{**(defaults or {}), **given})
 
 
@@ -116,7 +115,7 @@ class _Progress:
     """Progress lines for chunks of metrics [generations] (one run) or [runs, generations] (a sweep).
 
     Generations per second count from the end of compilation; `discarded`
-    continues from the resumed metrics.
+    (shown for emitters that report it) continues from the resumed metrics.
     """
 
     def __init__(self, label: str, total: int) -> None:
@@ -125,7 +124,7 @@ class _Progress:
 
     def resume(self, done: int, metrics: dict[str, np.ndarray]) -> None:
         self.done = self.since = done
-        if metrics:
+        if "discarded" in metrics:
             self.discarded = int(np.atleast_2d(metrics["discarded"]).sum(1).mean())
 
     def compiling(self, cache: str | None) -> None:
@@ -141,12 +140,15 @@ class _Progress:
         self.done = done
         cov = np.atleast_2d(m["coverage"])[:, -1]
         spread = f" +- {cov.std():.3f}" if len(cov) > 1 else ""
-        self.discarded += int(np.atleast_2d(m["discarded"]).sum(1).mean())  # per run
+        discarded = ""
+        if "discarded" in m:
+            self.discarded += int(np.atleast_2d(m["discarded"]).sum(1).mean())  # per run
+            discarded = f"  discarded {self.discarded:6d}"
         mean = lambda name: np.atleast_2d(m[name])[:, -1].mean()  # noqa: E731
         rate = (done - self.since) / max(time.perf_counter() - self.start, 1e-9)
         print(f"{self.label}generation {done:4d}/{self.total}  coverage {cov.mean():.3f}{spread}  "
-              f"size {mean('repertoire_size'):6.0f}  evaluations {mean('num_evaluations'):7.0f}  "
-              f"discarded {self.discarded:6d}  {rate:.1f} gen/s", flush=True)
+              f"size {mean('repertoire_size'):6.0f}  evaluations {mean('num_evaluations'):7.0f}"
+              f"{discarded}  {rate:.1f} gen/s", flush=True)
 
 
 def _say_removed(paths: list[str], why: str) -> None:
@@ -165,7 +167,7 @@ def _run(args: argparse.Namespace) -> None:
         _say_removed(leftovers, "left by an interrupted writer")
         if args.resume and not os.path.exists(path):
             raise ValueError(f"--resume: {args.out!r} holds no checkpoint; run without --resume to start")
-        _say_removed(folders.claim(args.out, "run", {"config": dataclasses.asdict(cfg), "seed": args.seed},
+        _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": args.seed},
                                    RUN_FILES, args.overwrite), "--overwrite")
         if os.path.exists(path) and not args.resume:
             print(f"starting afresh (pass --resume to continue the checkpoint in {args.out})")
@@ -181,7 +183,7 @@ def _run(args: argparse.Namespace) -> None:
         state, metrics = checkpoint.run_with_checkpoints(
             key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
             on_compiled=progress.compiled, on_chunk=lambda s, m: progress.chunk(int(s.generation), m))
-        meta = {"config": dataclasses.asdict(cfg), "seed": args.seed, "key": np.asarray(key).tolist(),
+        meta = {"config": cfg.to_dict(), "seed": args.seed, "key": np.asarray(key).tolist(),
                 "provenance": provenance()}
         results.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
         n = int(state.repertoire.count)
@@ -201,8 +203,7 @@ def _run(args: argparse.Namespace) -> None:
 
 def _sweep(args: argparse.Namespace) -> None:
     configs = [_config(args, task=t, algorithm=a) for t in args.tasks for a in args.algorithms]
-    batches = [(cfg, np.asarray(sweep.seed_keys(args.seeds or (10 if cfg.task in envs.ROBOT_TASKS else 25))))
-               for cfg in configs]
+    batches = [(cfg, np.asarray(sweep.seed_keys(args.seeds or get_task(cfg).paper_seeds))) for cfg in configs]
     where = ["before the first batch"]
     args.interrupted = lambda: (f"interrupted {where[0]}; finished batches are kept in {args.out}: the same "
                                 "command continues with the next one")
@@ -256,7 +257,7 @@ def _adapt(args: argparse.Namespace) -> None:
                                    "wall_s": time.perf_counter() - start}
                 print(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps {out.steps.mean():.2f}, "
                       f"{methods[method]['wall_s']:.1f} s", flush=True)
-            found[task] = {"source": results.source(args.dir, task), "config": dataclasses.asdict(cfg),
+            found[task] = {"source": results.source(args.dir, task), "config": cfg.to_dict(),
                            "keys": keys, "provenance": provenance(), "methods": methods}
             results.remove_derived(args.dir)
             results.write_json(path, found)
@@ -308,9 +309,9 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     sw = sub.add_parser("sweep", parents=[cache, writes],
                         help="seed sweeps (vmapped, sharded over devices): metrics, Table I, Figure 2")
     _add_config_flags(sw, skip=_PER_TASK, preset="auto")
-    sw.add_argument("--tasks", nargs="+", default=list(envs.registered_tasks()), metavar="TASK",
+    sw.add_argument("--tasks", nargs="+", default=list(registry.registered_tasks()), metavar="TASK",
                     help=f"tasks to sweep: {_task_names()} (default: every registered task)")
-    sw.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS), choices=ALGORITHMS,
+    sw.add_argument("--algorithms", nargs="+", default=list(PRESETS), choices=PRESETS,
                     help="default: all three")
     sw.add_argument("--seeds", type=_positive, default=None,
                     help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")

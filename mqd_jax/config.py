@@ -8,6 +8,10 @@ also through `dataclasses.replace`), before anything is traced.
 `Params` holds the scalar thresholds and rates as a pytree of arrays, so that one
 compiled run can be `jax.vmap`-ed over them (the way evosax separates `params`
 from the static config). `Config.params()` gives the defaults from the config.
+
+A config names its task (resolved through `mqd_jax.registry`) or holds a
+`Task` object, and names a preset emitter ("mqd", "qd", "random"; built by
+`mqd_jax.presets` from the config's fields) or holds any `Emitter`.
 """
 
 from __future__ import annotations
@@ -21,8 +25,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-ALGORITHMS = ("mqd", "qd", "random")
-PHYSICS_BACKENDS = ("auto", "mujoco", "mjx")
+from mqd_jax import registry
+from mqd_jax.emitters import Emitter
+from mqd_jax.task import Task
+
+# The named emitters `Config.algorithm` may give (built by `mqd_jax.presets`).
+PRESETS = ("mqd", "qd", "random")
 
 
 @struct.dataclass
@@ -89,10 +97,16 @@ class Config:
     task, algorithm) are static. The scalar thresholds and rates are also copied
     into `Params` by `params()`, which is what the jitted code reads, so they can
     be overridden by traced values.
+
+    `task` is a registered task's name or a `Task`; `algorithm` a preset's name
+    (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
+    model fields (t_nov, t_qua, batch_size, num_batches, warmup_samples,
+    hidden_size, budgeted, pool_factor) configure the "mqd" preset; a composed
+    emitter carries its own settings.
     """
 
-    task: str = "obstacle2d"
-    algorithm: str = "qd"
+    task: str | Task = "obstacle2d"
+    algorithm: str | Emitter = "qd"
     max_generations: int = 250
     population_size: int = 100
     k: int = 5
@@ -119,27 +133,24 @@ class Config:
     neighbour_slack: int = 3
     # Cells per behavior-space axis of the coverage grid.
     coverage_resolution: int = 256
-    # Budgeted filtering (M-QD only; off is the paper's filter): sample
+    # Budgeted ranking ("mqd" only; off is the paper's threshold filter): sample
     # `pool_factor` x population candidates, rank them with the model and
-    # evaluate exactly `population_size` of them (see filter.budgeted_order).
+    # evaluate exactly `population_size` of them (see acquisition.Budgeted).
     budgeted: bool = False
     pool_factor: int = 4
-    # Physics of the robot tasks: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX,
-    # accelerators) or "auto" ("mujoco" on a CPU backend, else "mjx").
-    physics_backend: str = "auto"
 
     def __post_init__(self) -> None:
-        from envs import is_task, registered_tasks
-
         # numpy scalars (np.int64(10), np.float32(0.02)) become the Python values they hold, so that
         # configs compare, hash and serialize the same however a value was given.
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if isinstance(value, np.generic):
                 object.__setattr__(self, field.name, value.item())
-        _check(isinstance(self.task, str) and is_task(self.task), "task", self.task,
-               f"one of the registered tasks {sorted(registered_tasks())} or a plugin 'package.module:factory'")
-        _check(self.algorithm in ALGORITHMS, "algorithm", self.algorithm, f"one of {ALGORITHMS}")
+        _check(isinstance(self.task, Task) or (isinstance(self.task, str) and registry.is_task(self.task)), "task",
+               self.task, f"a Task, one of the registered tasks {sorted(registry.registered_tasks())} or a plugin "
+               "'package.module:factory'")
+        _check(isinstance(self.algorithm, Emitter) or self.algorithm in PRESETS, "algorithm", self.algorithm,
+               f"an Emitter or one of the presets {PRESETS}")
         for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1),
                          ("batch_size", 1), ("num_batches", 1), ("warmup_samples", 0),
                          ("hidden_size", 1), ("adaptation_steps", 0), ("capacity", 1),
@@ -154,8 +165,6 @@ class Config:
             v = getattr(self, name)
             _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
         _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
-        _check(self.physics_backend in PHYSICS_BACKENDS, "physics_backend", self.physics_backend,
-               f"one of {PHYSICS_BACKENDS}")
         _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
         _check(not self.budgeted or self.algorithm == "mqd", "budgeted", self.budgeted,
                f"False unless algorithm='mqd' (it is {self.algorithm!r})")
@@ -179,9 +188,50 @@ class Config:
     @classmethod
     def paper(cls, task: str, **overrides: Any) -> Config:
         """Table II's column for `task`: the robotic one for the KUKA tasks, else the 2D one."""
-        from envs import ROBOT_TASKS
+        column = (registry.make(task) if isinstance(task, str) else task).table_ii_column
+        return (cls.paper_robot if column == "robot" else cls.paper_2d)(task=task, **overrides)
 
-        return (cls.paper_robot if task in ROBOT_TASKS else cls.paper_2d)(task=task, **overrides)
+    @property
+    def task_name(self) -> str:
+        """The task's registered name, or its class name for a task object `registry.make` did not build."""
+        named = registry.name_of(self.task)
+        return named[0] if named else type(self.task).__name__
+
+    @property
+    def algorithm_name(self) -> str:
+        """The preset's name, or the emitter's class name."""
+        return self.algorithm if isinstance(self.algorithm, str) else type(self.algorithm).__name__
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every field as JSON values (results files, checkpoints). A task `registry.make` built is its name (and
+        "task_options" if it was made with options); other task and emitter objects are their repr."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        named = registry.name_of(self.task)
+        out["task"] = named[0] if named else repr(self.task)
+        if named and named[1]:
+            out["task_options"] = named[1]
+        if not isinstance(self.algorithm, str):
+            out["algorithm"] = repr(self.algorithm)
+        return out
+
+    @classmethod
+    def from_dict(cls, saved: dict[str, Any]) -> Config:
+        """The config `to_dict` wrote (or an earlier version, see `upgraded`). Raises ValueError for a task or
+        emitter saved as a repr (no name to rebuild it from) or an unknown field."""
+        saved = upgraded(saved)
+        options = saved.pop("task_options", None)
+        unknown = set(saved) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"a saved config with unknown fields {sorted(unknown)} (from another version?)")
+        if saved.get("algorithm") not in PRESETS:
+            raise ValueError(f"a saved config of the emitter {saved.get('algorithm')!r}: only presets {PRESETS} can "
+                             "be rebuilt from a file; build its Config in Python")
+        task = saved.get("task")
+        if not (isinstance(task, str) and registry.is_task(task)):
+            raise ValueError(f"a saved config of the task {task!r}, which is not registered here")
+        if options:
+            saved["task"] = registry.make(task, **options)
+        return cls(**saved)
 
     @property
     def neighbours(self) -> int:
@@ -196,3 +246,13 @@ class Config:
             learning_rate=f(self.learning_rate), iso_sigma=f(self.iso_sigma),
             line_sigma=f(self.line_sigma), adaptation_step_size=f(self.adaptation_step_size),
         )
+
+
+def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
+    """A config dict saved by an earlier version in today's fields: `physics_backend` "auto" is dropped (since
+    version 0.2 a robot task's backend is an option of its construction, `task_options`)."""
+    saved = dict(saved)
+    backend = saved.pop("physics_backend", "auto")
+    if backend != "auto":
+        saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}
+    return saved

@@ -28,7 +28,7 @@ def problems(metrics: Mapping[str, np.ndarray], cfg: Config, task: Task) -> list
     total = {name: int(np.sum(np.asarray(metrics[name]))) for name in
              ("dropped_full", "out_of_range", "out_of_box", "invalid", "evaluations")}
     valid = total["evaluations"] - total["invalid"]
-    label = f"{cfg.task} {cfg.algorithm}: "
+    label = f"{cfg.task_name} {cfg.algorithm_name}: "
     found = []
     if total["evaluations"] and not valid:
         found.append(f"{label}all {total['evaluations']} rollouts were invalid (valid=False or a non-finite "

@@ -7,9 +7,10 @@ mapped from their bounds to [-1, 1], behaviors from the behavior box to
 the tanh outputs cover exactly the bounded spaces. `predict` maps back to real
 units and is the one function the filter and skill adaptation both use.
 
-Training (after every generation once warm-up is over): `num_batches` Adam
-steps on the mean-squared error in normalized units, each on `batch_size`
-skills drawn uniformly (with replacement) from the repertoire.
+Training (`mqd_jax.model_emitter` calls it after every generation once warm-up
+is over): `num_batches` Adam steps on the mean-squared error in normalized
+units, each on `batch_size` skills drawn uniformly (with replacement) from the
+repertoire.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from mqd_jax.config import Config
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
 
@@ -46,7 +46,8 @@ class ModelState:
     Attributes:
       params: Flax variables of the MLP: Dense_0 kernel [n, H], bias [H];
         Dense_1 kernel [H, d + 1], bias [d + 1].
-      opt_state: Adam's moment estimates (`optax.ScaleByAdamState`).
+      opt_state: `optax.adam`'s state with its hyperparameters injected
+        (`optax.inject_hyperparams`): the learning rate is a traced value.
       steps: int32, training steps taken so far.
     """
 
@@ -55,13 +56,18 @@ class ModelState:
     steps: jax.Array
 
 
-# Adam's direction; the learning rate multiplies it outside, so that the rate
-# can be a traced `Params` value.
-_ADAM = optax.scale_by_adam()
+# Adam with its learning rate in the optimizer state, so that `train` can set it from a traced `Params` value.
+# Its other hyperparameters stay Python constants, folded into the program as optax.adam's are.
+_OPTIMIZER = optax.inject_hyperparams(optax.adam, static_args=("b1", "b2", "eps", "eps_root"))(learning_rate=0.0)
 
 
-def network(cfg: Config, task: Task) -> MLP:
-    return MLP(hidden_size=cfg.hidden_size, out_size=task.behavior_dim + 1)
+def network(hidden_size: int, task: Task) -> MLP:
+    return MLP(hidden_size=hidden_size, out_size=task.behavior_dim + 1)
+
+
+def _network_of(model: ModelState, task: Task) -> MLP:
+    """The network `model`'s parameters belong to (its hidden size read from their shapes)."""
+    return network(model.params["params"]["Dense_0"]["bias"].shape[-1], task)
 
 
 def _bounds(task: Task) -> tuple[jax.Array, jax.Array]:
@@ -87,29 +93,29 @@ def normalize_targets(behaviors: jax.Array, qualities: jax.Array, task: Task) ->
     return _to_unit(jnp.concatenate([behaviors, qualities[..., None]], axis=-1), *_bounds(task))
 
 
-def init(key: jax.Array, cfg: Config, task: Task) -> ModelState:
+def init(key: jax.Array, hidden_size: int, task: Task) -> ModelState:
     """Random parameters (Flax's default initialisers) and a fresh Adam state."""
-    params = network(cfg, task).init(key, jnp.zeros((1, task.action_dim), jnp.float32))
-    return ModelState(params=params, opt_state=_ADAM.init(params), steps=jnp.int32(0))
+    params = network(hidden_size, task).init(key, jnp.zeros((1, task.action_dim), jnp.float32))
+    return ModelState(params=params, opt_state=_OPTIMIZER.init(params), steps=jnp.int32(0))
 
 
-def predict(model: ModelState, actions: jax.Array, cfg: Config, task: Task) -> tuple[jax.Array, jax.Array]:
+def predict(model: ModelState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
     """phi in real units: actions [..., n] -> behaviors [..., d], qualities [...]."""
-    y = network(cfg, task).apply(model.params, normalize_actions(actions, task))
+    y = _network_of(model, task).apply(model.params, normalize_actions(actions, task))
     low, high = _bounds(task)
     y = low + (y + 1.0) * (high - low) / 2.0
     return y[..., :-1], y[..., -1]
 
 
-def train(model: ModelState, key: jax.Array, rep: Repertoire, cfg: Config, task: Task,
-          learning_rate: jax.Array) -> tuple[ModelState, jax.Array]:
-    """`cfg.num_batches` Adam steps on mini-batches from the repertoire's skills.
+def train(model: ModelState, key: jax.Array, rep: Repertoire, task: Task, learning_rate: jax.Array, batch_size: int,
+          num_batches: int) -> tuple[ModelState, jax.Array]:
+    """`num_batches` Adam steps at `learning_rate` on mini-batches of `batch_size` of the repertoire's skills.
 
     The repertoire must hold at least one skill (its valid entries are the
     prefix [0, count)). Returns the new state and the mean loss over the steps.
     """
-    net = network(cfg, task)
-    rows = jax.random.randint(key, (cfg.num_batches, cfg.batch_size), 0, rep.count)
+    net = _network_of(model, task)
+    rows = jax.random.randint(key, (num_batches, batch_size), 0, rep.count)
     inputs = normalize_actions(rep.actions, task)
     targets = normalize_targets(rep.behaviors, rep.qualities, task)
 
@@ -119,9 +125,10 @@ def train(model: ModelState, key: jax.Array, rep: Repertoire, cfg: Config, task:
     def step(carry: tuple[Any, optax.OptState], idx: jax.Array) -> tuple[tuple[Any, optax.OptState], jax.Array]:
         params, opt_state = carry
         loss, grads = jax.value_and_grad(loss_fn)(params, idx)
-        direction, opt_state = _ADAM.update(grads, opt_state)
-        params = jax.tree.map(lambda p, u: p - learning_rate * u, params, direction)
-        return (params, opt_state), loss
+        updates, opt_state = _OPTIMIZER.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), loss
 
-    (params, opt_state), losses = jax.lax.scan(step, (model.params, model.opt_state), rows, unroll=2)
-    return ModelState(params=params, opt_state=opt_state, steps=model.steps + cfg.num_batches), losses.mean()
+    hyperparams = {**model.opt_state.hyperparams, "learning_rate": jnp.asarray(learning_rate, jnp.float32)}
+    opt_state = model.opt_state._replace(hyperparams=hyperparams)
+    (params, opt_state), losses = jax.lax.scan(step, (model.params, opt_state), rows, unroll=2)
+    return ModelState(params=params, opt_state=opt_state, steps=model.steps + num_batches), losses.mean()

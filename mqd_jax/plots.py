@@ -14,10 +14,6 @@ from mqd_jax.adaptation import METHODS
 from mqd_jax.results import NAMES, Runs
 from mqd_jax.task import Task
 
-# Region colours by the first word of their label.
-_COLOURS = {"obstacle": "0.35", "table": (0.88, 0.8, 0.66), "shelf": (0.62, 0.45, 0.28), "object": "tab:red",
-            "agent": "tab:green"}
-
 
 def pyplot() -> Any:
     """matplotlib.pyplot on the Agg backend, or None (with a message) when matplotlib is not installed."""
@@ -50,8 +46,8 @@ def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str) -> None:
         (x0, y0), (x1, y1) = region.low, region.high
         label = None if region.label in labelled else region.label
         labelled.add(region.label)
-        colour = _COLOURS.get(region.label.split()[0], "0.6")
-        style = dict(color=colour, alpha=0.7, label=label) if region.filled else dict(fill=False, ls="--", label=label)
+        style = (dict(color=region.colour or "0.6", alpha=0.7, label=label) if region.filled
+                 else dict(fill=False, ls="--", label=label))
         patch = Ellipse(((x0 + x1) / 2, (y0 + y1) / 2), x1 - x0, y1 - y0, **style) if region.shape == "disk" \
             else Rectangle((x0, y0), x1 - x0, y1 - y0, **style)
         ax.add_patch(patch)

@@ -5,7 +5,9 @@ processed one after another, each against the repertoire as it stands after the
 previous ones. If its behavior is farther than t_dist from the nearest skill it
 is added; otherwise it replaces that nearest skill if its quality is strictly
 higher; otherwise it is rejected. Skills are never deleted, so the valid
-entries are always the prefix `[0, count)`.
+entries are always the prefix `[0, count)`. Ties: of skills equally near a
+candidate, the nearest is the one in the lowest slot (as a scan over the slots
+finds it), whether it was there before the generation or written in it.
 
 Speed: the repertoire only changes at the slots this generation writes, so the
 nearest skill of a candidate is either one of its M nearest pre-generation
@@ -16,6 +18,7 @@ candidate, and falls back to an exact O(C) search when all M were replaced.
 
 from __future__ import annotations
 
+import enum
 import functools
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -26,8 +29,15 @@ from flax import struct
 
 from mqd_jax import batching, neighbours
 
-# Outcome of a candidate, in `Insertion.status`.
-SKIPPED, ADDED, REPLACED, REJECTED, DROPPED_FULL = 0, 1, 2, 3, 4
+
+class AddStatus(enum.IntEnum):
+    """What insertion did with a candidate (`Insertion.status`, int32 arrays of these values)."""
+
+    SKIPPED = 0  # not rolled out, or its rollout was invalid
+    ADDED = 1  # a new niche: farther than t_dist from every skill
+    REPLACED = 2  # took the place of its nearest skill, whose quality it beat
+    REJECTED = 3  # within t_dist of a skill at least as good
+    DROPPED_FULL = 4  # a new niche that did not fit: the repertoire was full
 
 
 @struct.dataclass
@@ -71,7 +81,7 @@ class Insertion:
     """What one generation's insertion did, per candidate (P candidates).
 
     Attributes:
-      status: [P] int32, one of SKIPPED, ADDED, REPLACED, REJECTED, DROPPED_FULL.
+      status: [P] int32, an `AddStatus` value.
       slot: [P] slot a candidate was written to (meaningful for ADDED/REPLACED).
       alive: [P] whether the candidate is still in the repertoire at the end.
       archived: [P] whether an archive entry came out of this candidate's step;
@@ -88,7 +98,8 @@ class Insertion:
 
     @property
     def archived(self) -> jax.Array:
-        return (self.status == REJECTED) | (self.status == DROPPED_FULL) | (self.status == REPLACED)
+        return ((self.status == AddStatus.REJECTED) | (self.status == AddStatus.DROPPED_FULL)
+                | (self.status == AddStatus.REPLACED))
 
 
 def _replaced(victim_slot: jax.Array, size: int) -> jax.Array:
@@ -107,13 +118,13 @@ def _nearest_remaining(behavior: jax.Array, behaviors: jax.Array, valid: jax.Arr
 
 
 def _sequential_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
-                     d_cand: jax.Array, qualities: jax.Array, ok: jax.Array, t_dist: jax.Array) -> Insertion:
+                     d_cand: jax.Array, qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
     """Runs the insertion rule candidate by candidate; writes nothing yet.
 
     near_d, near_i: [P, M] each candidate's M nearest pre-generation skills,
     ascending (squared distance, slot; inf and -1 where there are fewer);
-    d_cand: [P, P] squared distances between candidates. The loop's state is
-    O(P), so it batches well under vmap.
+    d_cand: [P, P] squared distances between candidates; usable: [P] the
+    candidates to insert. The loop's state is O(P), so it batches well under vmap.
     """
     capacity, pop = rep.capacity, d_cand.shape[0]
     t2 = t_dist**2
@@ -121,38 +132,43 @@ def _sequential_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, n
     cands = jnp.arange(pop)
 
     def step(i: jax.Array, s: Insertion) -> Insertion:
-        count = (s.status == ADDED).sum()
+        count = (s.status == AddStatus.ADDED).sum()
+        # The nearest pre-generation skill still there: the first listed one not replaced, else a full search.
         listed = near_i[i]
-        usable = (listed >= 0) & ~(listed[:, None] == s.victim_slot[None]).any(1)
-        first = jnp.argmax(usable)
-        quick = (jnp.where(usable.any(), near_d[i, first], jnp.inf), listed[first], near_q[i, first])
+        still_there = (listed >= 0) & ~(listed[:, None] == s.victim_slot[None]).any(1)
+        first = jnp.argmax(still_there)
+        quick = (jnp.where(still_there.any(), near_d[i, first], jnp.inf), listed[first], near_q[i, first])
         # All M listed skills were replaced and the next one may be within t_dist.
-        need_all = ~usable.any() & (near_d[i, -1] <= t2)
-        d_o, j_o, q_o = batching.rare_cond(
+        need_all = ~still_there.any() & (near_d[i, -1] <= t2)
+        d_old, slot_old, q_old = batching.rare_cond(
             need_all, lambda *a: _nearest_remaining(*a[:-1]), lambda *a: a[-1],
             behaviors[i], rep.behaviors, rep.valid, rep.qualities, s.victim_slot, quick)
-        d_c_row = jnp.where(s.alive, d_cand[i], jnp.inf)
-        j_c = jnp.argmin(d_c_row)
-        d_c, slot_c = d_c_row[j_c], s.slot[j_c]
+        # The nearest skill written earlier in this generation, the lowest slot among equally near ones.
+        d_row = jnp.where(s.alive, d_cand[i], jnp.inf)
+        d_new = d_row.min()
+        j_new = jnp.argmin(jnp.where(d_row == d_new, s.slot, capacity))
+        slot_new = s.slot[j_new]
         # Nearest by (distance, slot), as a scan over the repertoire's slots would find.
-        use_c = (d_c < d_o) | ((d_c == d_o) & (slot_c < j_o))
-        d_n = jnp.where(use_c, d_c, d_o)
-        q_n = jnp.where(use_c, qualities[j_c], q_o)
-        is_new = d_n > t2
+        nearest_is_new = (d_new < d_old) | ((d_new == d_old) & (slot_new < slot_old))
+        d_nearest = jnp.where(nearest_is_new, d_new, d_old)
+        q_nearest = jnp.where(nearest_is_new, qualities[j_new], q_old)
+        is_new = d_nearest > t2
         full = rep.count + count >= capacity
-        replace = ok[i] & ~is_new & (qualities[i] > q_n)
+        replace = usable[i] & ~is_new & (qualities[i] > q_nearest)
         status = jnp.select(
-            [~ok[i], is_new & ~full, is_new, replace],
-            [SKIPPED, ADDED, DROPPED_FULL, REPLACED], REJECTED)
-        slot_i = jnp.where(status == ADDED, rep.count + count, jnp.where(use_c, slot_c, j_o))
+            [~usable[i], is_new & ~full, is_new, replace],
+            [AddStatus.SKIPPED, AddStatus.ADDED, AddStatus.DROPPED_FULL, AddStatus.REPLACED], AddStatus.REJECTED)
+        slot_i = jnp.where(status == AddStatus.ADDED, rep.count + count,
+                           jnp.where(nearest_is_new, slot_new, slot_old))
         # Whole-row selects rather than scatters: P is small, and they batch without a gather.
         at_i = cands == i
         return Insertion(
             status=jnp.where(at_i, status, s.status),
             slot=jnp.where(at_i, slot_i, s.slot),
-            alive=jnp.where(at_i, (status == ADDED) | replace, s.alive & ~((cands == j_c) & replace & use_c)),
-            victim_slot=jnp.where(at_i, jnp.where(replace & ~use_c, j_o, -1), s.victim_slot),
-            victim_candidate=jnp.where(at_i, jnp.where(replace & use_c, j_c, -1), s.victim_candidate),
+            alive=jnp.where(at_i, (status == AddStatus.ADDED) | replace,
+                            s.alive & ~((cands == j_new) & replace & nearest_is_new)),
+            victim_slot=jnp.where(at_i, jnp.where(replace & ~nearest_is_new, slot_old, -1), s.victim_slot),
+            victim_candidate=jnp.where(at_i, jnp.where(replace & nearest_is_new, j_new, -1), s.victim_candidate),
         )
 
     none = jnp.full(pop, -1, jnp.int32)
@@ -188,7 +204,7 @@ def _apply(k: int, chunk: int, size: int, rep: Repertoire, behaviors: jax.Array,
     """Writes the rule's outcome into the first `size` slots (all but actions) and brings novelty up to date."""
     part = _prefix(rep, size, rep.capacity)
     slot = _written(ins, size)
-    count = rep.count + (ins.status == ADDED).sum(dtype=jnp.int32)
+    count = rep.count + (ins.status == AddStatus.ADDED).sum(dtype=jnp.int32)
     valid = jnp.arange(size) < count
     new_behaviors = part.behaviors.at[slot].set(behaviors, mode="drop")
     lists = neighbours.update(part.neighbours, new_behaviors, valid, _replaced(ins.victim_slot, size), slot, k, chunk)
@@ -208,7 +224,7 @@ def _written(ins: Insertion, capacity: int) -> jax.Array:
     return jnp.where(ins.alive, ins.slot, capacity)
 
 
-def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, ok: jax.Array,
+def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, usable: jax.Array,
            t_dist: jax.Array, k: int, num_near: int, chunk: int, min_prefix: int = 512
            ) -> tuple[Repertoire, Insertion]:
     """Inserts a generation of candidates and updates novelty.
@@ -216,8 +232,8 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     Args:
       rep: the repertoire before the generation.
       actions: [P, n], behaviors: [P, d], qualities: [P] of the candidates.
-      ok: [P] candidates that were evaluated and returned a valid, finite result;
-        the others are skipped.
+      usable: [P] candidates that were rolled out and returned a valid, finite
+        result; the others are skipped.
       t_dist: distance threshold; k: novelty's K; num_near: M above; chunk: rows
         of neighbour lists updated at a time; min_prefix: see below.
 
@@ -237,7 +253,7 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
     near_d, near_i = _on_prefix(sizes, rep.count, functools.partial(_nearest_before, min(num_near, sizes[0])), slim,
                                 behaviors)
-    ins = _sequential_rule(rep, behaviors, near_d, near_i, neighbours.sq_dists(behaviors, behaviors), qualities, ok,
+    ins = _sequential_rule(rep, behaviors, near_d, near_i, neighbours.sq_dists(behaviors, behaviors), qualities, usable,
                            t_dist)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)

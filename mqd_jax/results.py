@@ -37,22 +37,13 @@ from typing import Any
 import jax
 import numpy as np
 
-from envs import registered_tasks
-from mqd_jax import checkpoint
-from mqd_jax.config import ALGORITHMS, Config
+from mqd_jax import checkpoint, registry
+from mqd_jax.config import PRESETS, Config, upgraded
 from mqd_jax.folders import differences, read_json, write_atomically, write_npz
 from mqd_jax.provenance import machine, provenance
-from mqd_jax.run import State
+from mqd_jax.run import State, get_task
 from mqd_jax.stats import mann_whitney
 
-# The paper's Table I: final coverage, mean and std, per task and algorithm.
-PAPER_COVERAGE = {
-    "obstacle2d": {"mqd": (0.971, 0.018), "qd": (0.875, 0.017), "random": (0.731, 0.004)},
-    "object2d": {"mqd": (0.504, 0.073), "qd": (0.366, 0.064), "random": (0.035, 0.002)},
-    "push_cube": {"mqd": (0.828, 0.059), "qd": (0.709, 0.047), "random": (0.216, 0.073)},
-    "push_sphere": {"mqd": (0.685, 0.0185), "qd": (0.560, 0.009), "random": (0.171, 0.004)},
-    "place": {"mqd": (0.639, 0.034), "qd": (0.524, 0.009), "random": (0.349, 0.001)},
-}
 NAMES = {"mqd": "M-QD", "qd": "QD", "random": "RANDOM"}
 # The files a sweep folder holds (glob patterns, for `folders.claim`), and those made from them.
 FILES = ("*_*.json", "*_*.npz", "*_mqd.msgpack", "adaptation.json")
@@ -102,6 +93,7 @@ def _batches(out: str) -> list[tuple[str, dict[str, Any]]]:
             saved = read_json(path)
             if not (isinstance(saved, dict) and {"config", "keys", "metrics"} <= set(saved)):
                 raise ValueError(f"{path!r} is not a batch of `mqd sweep` (no config, keys or metrics)")
+            saved["config"] = upgraded(saved["config"])
             found.append((path[:-len(".json")], saved))
     return found
 
@@ -133,7 +125,7 @@ def conflicts(out: str, planned: list[tuple[Config, np.ndarray]]) -> dict[str, s
     """
     batches = _batches(out)
     return {stem: differ for cfg, keys in planned
-            for stem, differ in _clashes(batches, dataclasses.asdict(cfg), np.asarray(keys).tolist()).items()}
+            for stem, differ in _clashes(batches, cfg.to_dict(), np.asarray(keys).tolist()).items()}
 
 
 def describe(clash: dict[str, str]) -> str:
@@ -151,11 +143,12 @@ def remove_batches(out: str, stems: list[str]) -> None:
 
 def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
     """Whether `out` already holds the runs of `cfg` from exactly these keys."""
-    path = _stem(out, cfg.task, cfg.algorithm) + ".json"
+    path = _stem(out, cfg.task_name, cfg.algorithm_name) + ".json"
     if not os.path.exists(path):
         return False
     saved = read_json(path)
-    return saved.get("config") == dataclasses.asdict(cfg) and saved.get("keys") == np.asarray(keys).tolist()
+    return (upgraded(saved.get("config", {})) == cfg.to_dict()
+            and saved.get("keys") == np.asarray(keys).tolist())
 
 
 def remove_derived(out: str) -> None:
@@ -169,16 +162,21 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
               wall_s: float) -> None:
     """Writes a batch of runs of `cfg` (states and metrics with a leading seed axis) to the folder `out`.
 
-    Raises ValueError if `out` holds batches that conflict with it (`conflicts`);
-    removes the tables and figures made from the folder's earlier results.
+    Raises ValueError if `out` holds batches that conflict with it (`conflicts`),
+    or if `cfg` is not a preset of a registered task (a folder's files are read
+    back by name; save other runs with `mqd_jax.checkpoint.save`); removes the
+    tables and figures made from the folder's earlier results.
     """
+    if cfg.algorithm not in PRESETS or registry.name_of(cfg.task) is None:
+        raise ValueError(f"a results folder holds presets {PRESETS} of registered tasks, not {cfg.algorithm!r} on "
+                         f"{cfg.task!r}: save such runs with mqd_jax.checkpoint.save")
     clash = conflicts(out, [(cfg, keys)])
     if clash:
         raise ValueError(f"{out!r} refused: {describe(clash)}")
     os.makedirs(out, exist_ok=True)
     remove_derived(out)
-    stem = _stem(out, cfg.task, cfg.algorithm)
-    meta = {"config": dataclasses.asdict(cfg), "keys": np.asarray(keys).tolist(), "provenance": provenance()}
+    stem = _stem(out, cfg.task_name, cfg.algorithm)
+    meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "provenance": provenance()}
     rep = jax.device_get(states.repertoire)
     m = max(int(rep.count.max()), 1)
     write_npz(stem + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
@@ -218,7 +216,7 @@ class Runs:
 
 def task_order(task: str) -> int:
     """Sort key: the registry's order (the paper's tasks first), then the rest."""
-    return (*registered_tasks(), task).index(task)
+    return (*registry.registered_tasks(), task).index(task)
 
 
 def _load_npz(path: str) -> dict[str, np.ndarray]:
@@ -239,7 +237,7 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
     batches = _batches(out)
     for stem, saved in batches:
         try:
-            cfg = Config(**saved["config"])
+            cfg = Config.from_dict(saved["config"])
         except (TypeError, ValueError) as e:
             raise ValueError(f"{stem + '.json'!r} holds an invalid config: {e}") from e
         clash = _clashes(batches, saved["config"], saved["keys"])
@@ -248,12 +246,12 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
                              f"{describe(clash)}")
         rep = _load_npz(stem + ".npz")
         metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
-        found.setdefault(cfg.task, {})[cfg.algorithm] = Runs(
+        found.setdefault(cfg.task_name, {})[cfg.algorithm] = Runs(
             cfg, np.asarray(saved["keys"], np.uint32), saved["wall_s"], saved["machine"], metrics, rep["count"],
             rep["behaviors"])
     if not found:
         raise ValueError(f"{out!r} holds no sweep results (<task>_<algorithm>.json with .npz): run `mqd sweep` first")
-    return {task: dict(sorted(found[task].items(), key=lambda kv: ALGORITHMS.index(kv[0])))
+    return {task: dict(sorted(found[task].items(), key=lambda kv: PRESETS.index(kv[0])))
             for task in sorted(found, key=task_order)}
 
 
@@ -263,7 +261,7 @@ def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     if not os.path.exists(path + ".json"):
         raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task}` with M-QD first")
     saved = read_json(path + ".json")
-    cfg, keys = Config(**saved["config"]), np.asarray(saved["keys"], np.uint32)
+    cfg, keys = Config.from_dict(upgraded(saved["config"])), np.asarray(saved["keys"], np.uint32)
     state, _ = checkpoint.load(path + ".msgpack", cfg, keys)
     return cfg, keys, state
 
@@ -306,7 +304,7 @@ def _p_value(by: dict[str, Runs], a: str, b: str) -> str:
 def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
     """Markdown: Table I (final coverage, the paper's layout, the paper's values beside ours), the mean-quality
     table, and per task the evaluations, wall times and two-sided Mann-Whitney U p-values on final coverage."""
-    algs = [a for a in ALGORITHMS if any(a in r for r in runs.values())]
+    algs = [a for a in PRESETS if any(a in r for r in runs.values())]
     seeds = sorted({len(r.keys) for by in runs.values() for r in by.values()})
 
     def cells(task: str, cell: Callable[[str, Runs], str]) -> list[str]:
@@ -317,7 +315,7 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
 
     def coverage(task: str, a: str, r: Runs) -> str:
         # The paper's value only beside runs made with the paper's settings (Table II).
-        paper = PAPER_COVERAGE.get(task, {}).get(a) if r.cfg == Config.paper(task, algorithm=a) else None
+        paper = get_task(r.cfg).paper_coverage.get(a) if r.cfg == Config.paper(task, algorithm=a) else None
         return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "")
 
     head = [row("task", *(NAMES[a] for a in algs)), "|---" * (len(algs) + 1) + "|"]

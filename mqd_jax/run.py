@@ -1,8 +1,18 @@
-"""One generation as a pure function of explicit state, and a whole run as a scan of it."""
+"""One generation as a pure function of explicit state, and a whole run as a scan of it.
+
+A run searches with an emitter (`mqd_jax.emitters`: a preset the config names,
+or any composition) on a task, in named stages:
+
+    propose -> evaluate -> insert -> archive -> coverage -> emitter update -> metrics
+
+`ask` is the first stage and `tell` the stages after the rollouts, so that an
+evaluator outside JAX can sit between them; `generation` is all of them.
+"""
 
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -10,20 +20,21 @@ import numpy as np
 from flax import struct
 
 from mqd_jax import archive as archive_lib
-from mqd_jax import coverage, diagnostics, model, repertoire, selection, variation
-from mqd_jax import filter as model_filter
+from mqd_jax import coverage, diagnostics, presets, registry, repertoire
 from mqd_jax.config import Config, Params, check_params
+from mqd_jax.emitters import Evaluated, Proposal
+from mqd_jax.repertoire import AddStatus
 from mqd_jax.task import Task, check_outputs
 
 # Nearest pre-generation skills precomputed per candidate (see repertoire.py).
 _NUM_NEAR = 4
-# A generation's metrics (scalars; see `run_mqd`) and their dtypes: what a skipped generation reports (zeros)
-# without tracing a generation to find out.
+# The metrics of every generation (scalars; see `run_mqd`) and their dtypes; the emitter adds its own
+# (`metric_dtypes`). A skipped generation reports zeros of these without tracing a generation to find out.
 METRICS = {
     "coverage": jnp.float32, "mean_quality": jnp.float32, "repertoire_size": jnp.int32,
     "num_evaluations": jnp.int32, "evaluations": jnp.int32, "added": jnp.int32, "replaced": jnp.int32,
     "rejected": jnp.int32, "dropped_full": jnp.int32, "invalid": jnp.int32, "out_of_range": jnp.int32,
-    "out_of_box": jnp.int32, "discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
+    "out_of_box": jnp.int32,
 }
 
 
@@ -35,7 +46,7 @@ class State:
       repertoire: the skills found so far (capacity C).
       archive: skills rejected or replaced (ring buffer of size A).
       coverage: coverage grid of the repertoire's disks.
-      model: M-QD's forward model (initialised, never trained, for QD and RANDOM).
+      emitter: the emitter's state (M-QD: `model_emitter.ModelEmitterState`, which holds the model).
       key: PRNG key for the next generation.
       generation: int32, generations done.
       num_evaluations: int32, rollouts evaluated so far.
@@ -44,19 +55,20 @@ class State:
     repertoire: repertoire.Repertoire
     archive: archive_lib.Archive
     coverage: coverage.CoverageGrid
-    model: model.ModelState
+    emitter: Any
     key: jax.Array
     generation: jax.Array
     num_evaluations: jax.Array
 
 
 def get_task(cfg: Config) -> Task:
-    """The task `cfg.task` names (from the `envs` registry)."""
-    from envs import make
+    """The task of `cfg`: its Task, or the one `mqd_jax.registry` makes from its name."""
+    return registry.make(cfg.task) if isinstance(cfg.task, str) else cfg.task
 
-    if cfg.physics_backend == "auto":
-        return make(cfg.task)
-    return make(cfg.task, backend=cfg.physics_backend)
+
+def metric_dtypes(cfg: Config) -> dict[str, Any]:
+    """{name: dtype} of a generation's metrics: the engine's (`METRICS`) and the emitter's."""
+    return {**METRICS, **presets.emitter(cfg).metrics()}
 
 
 @functools.cache
@@ -69,11 +81,11 @@ def _reachable(cfg: Config) -> np.ndarray:
 
 
 def init(key: jax.Array, cfg: Config) -> State:
-    """The state before the first generation: empty repertoire and archive, random model. Jitted.
+    """The state before the first generation: empty repertoire and archive, the emitter's initial state. Jitted.
 
     Raises ValueError if the task's `evaluate` breaks the task protocol's shapes.
     """
-    check_outputs(get_task(cfg), cfg.task, cfg.population_size)
+    check_outputs(get_task(cfg), cfg.task_name, cfg.population_size)
     return _init(key, cfg)
 
 
@@ -82,13 +94,13 @@ def _init(key: jax.Array, cfg: Config) -> State:
     # One compiled program rather than a few dozen eager operations: a second start loads it from the cache.
     task = get_task(cfg)
     n, d = task.action_dim, task.behavior_dim
-    key, k_model = jax.random.split(key)
+    key, k_emitter = jax.random.split(key)
     return State(
         repertoire=repertoire.Repertoire.empty(cfg.capacity, n, d, cfg.neighbours),
         archive=archive_lib.Archive.empty(cfg.archive_capacity, n, d),
         coverage=coverage.empty(np.asarray(task.behavior_low), np.asarray(task.behavior_high),
                                 _reachable(cfg), cfg.t_dist),
-        model=model.init(k_model, cfg, task),
+        emitter=presets.emitter(cfg).init(k_emitter, task),
         key=key,
         generation=jnp.int32(0),
         num_evaluations=jnp.int32(0),
@@ -126,38 +138,22 @@ def check_state(state: State, cfg: Config, batch: tuple[int, ...] = (), fields: 
                          f"hidden_size {cfg.hidden_size}): {why}")
 
 
-def _candidates(key: jax.Array, state: State, cfg: Config, params: Params, task: Task, num: int) -> jax.Array:
-    """[num, n] actions: uniform for RANDOM and while the repertoire is empty, else iso+line children."""
-    low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
-    k_uniform, k_parents, k_vary = jax.random.split(key, 3)
-    fresh = variation.uniform(k_uniform, num, low, high)
-    if cfg.algorithm == "random":
-        return fresh
-    rep = state.repertoire
-    parents = selection.sample_parents(k_parents, rep.novelty, rep.valid, 2 * num)
-    x = rep.actions[parents].reshape(2, num, -1)
-    children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma, params.line_sigma, low, high)
-    return jnp.where(rep.count > 0, children, fresh)
-
-
 @struct.dataclass
 class Candidates:
     """A generation's candidates, as `ask` hands them to an evaluator (P = population size).
 
     Attributes:
       actions: [P, n] actions.
-      evaluate: [P] bool, the candidates to roll out (M-QD's filter; all for QD
-        and RANDOM). The others' results are ignored.
+      rollout: [P] bool, the candidates to roll out (M-QD: those its model
+        chose); the others' results are ignored.
       key: PRNG key for the rollouts (for stochastic tasks).
-      pred_behaviors: [P, d] the model's predicted behaviors (M-QD), else NaN.
-      discarded: int32, candidates the model turned down this generation.
+      info: the emitter's data about its proposal, handed back to its update.
     """
 
     actions: jax.Array
-    evaluate: jax.Array
+    rollout: jax.Array
     key: jax.Array
-    pred_behaviors: jax.Array
-    discarded: jax.Array
+    info: Any
 
 
 def _checked(state: State, cfg: Config, params: Params | None) -> Params:
@@ -175,43 +171,109 @@ def _checked(state: State, cfg: Config, params: Params | None) -> Params:
 
 
 def ask(state: State, cfg: Config, params: Params | None = None) -> Candidates:
-    """Variation and, for M-QD after warm-up, the model's filter (Algorithm 1).
+    """The propose stage: the emitter's candidates for this generation. Pure and jitted.
 
-    Uses `state.key` and does not advance it: `tell` does. Pure and jitted.
-    Raises ValueError for a state of another config or invalid concrete params.
+    Uses `state.key` and does not advance it: `tell` does. Raises ValueError
+    for a state of another config, invalid concrete params, or an emitter
+    whose proposal is not shaped actions [P, n], rollout [P] bool.
     """
     return _ask(state, cfg, _checked(state, cfg, params))
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _ask(state: State, cfg: Config, params: Params) -> Candidates:
+    return _propose(state, cfg, params)
+
+
+def _propose(state: State, cfg: Config, params: Params) -> Candidates:
+    """Stage propose: `population_size` candidates from the emitter, and the key of their rollouts."""
     task, pop = get_task(cfg), cfg.population_size
-    _, k_cand, k_eval, _ = jax.random.split(state.key, 4)
-    if cfg.algorithm != "mqd":
-        actions = _candidates(k_cand, state, cfg, params, task, pop)
-        return Candidates(actions, jnp.ones(pop, bool), k_eval, jnp.full((pop, task.behavior_dim), jnp.nan),
-                          jnp.int32(0))
-    warm_up = state.num_evaluations < cfg.warmup_samples
-    pool = _candidates(k_cand, state, cfg, params, task, pop * cfg.pool_factor if cfg.budgeted else pop)
-    pred_b, pred_q = model.predict(state.model, pool, cfg, task)
-    novelty, improvement = model_filter.predicted_scores(pred_b, pred_q, state.repertoire, cfg.k)
-    if cfg.budgeted:
-        # During warm-up the pool's first P candidates stand in for QD's.
-        top = jnp.where(warm_up, jnp.arange(pop), model_filter.budgeted_order(novelty, improvement, params.t_nov)[:pop])
-        discarded = jnp.where(warm_up, 0, pool.shape[0] - pop).astype(jnp.int32)
-        return Candidates(pool[top], jnp.ones(pop, bool), k_eval, pred_b[top], discarded)
-    evaluate = warm_up | model_filter.passes(novelty, improvement, params.t_nov, params.t_qua)
-    return Candidates(pool, evaluate, k_eval, pred_b, pop - evaluate.sum(dtype=jnp.int32))
+    _, k_propose, k_rollout, _ = jax.random.split(state.key, 4)
+    emitter = presets.emitter(cfg)
+    proposal = emitter.propose(k_propose, state.emitter, state.repertoire, task, params, pop)
+    shapes = (jnp.shape(proposal.actions), jnp.shape(proposal.rollout), jnp.result_type(proposal.rollout))
+    if shapes != ((pop, task.action_dim), (pop,), jnp.bool_):
+        raise ValueError(f"{emitter!r}.propose returned actions {shapes[0]} and rollout {shapes[1]} {shapes[2]}; "
+                         f"expected ({pop}, {task.action_dim}) and ({pop},) bool")
+    return Candidates(proposal.actions.astype(jnp.float32), proposal.rollout, k_rollout, proposal.info)
 
 
-def _train(state: State, rep: repertoire.Repertoire, key: jax.Array, cfg: Config, params: Params,
-           task: Task) -> tuple[model.ModelState, jax.Array]:
-    """Trains M-QD's model once warm-up is over; the loss is NaN when it does not train."""
-    if cfg.algorithm != "mqd":
-        return state.model, jnp.float32(jnp.nan)
-    due = (state.num_evaluations >= cfg.warmup_samples) & (rep.count > 0)
-    return jax.lax.cond(due, lambda: model.train(state.model, key, rep, cfg, task, params.learning_rate),
-                        lambda: (state.model, jnp.float32(jnp.nan)))
+def _evaluate(candidates: Candidates, task: Task) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Stage evaluate: the task's rollouts of the candidates to roll out."""
+    return task.evaluate_masked(candidates.actions, candidates.key, candidates.rollout)
+
+
+def _usable(candidates: Candidates, behaviors: jax.Array, qualities: jax.Array,
+            valid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Behaviors [P, d] and qualities [P] as float32, zero where not usable, and usable [P]: rolled out,
+    valid and finite."""
+    usable = candidates.rollout & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
+    behaviors = jnp.where(usable[:, None], behaviors, 0.0).astype(jnp.float32)
+    return behaviors, jnp.where(usable, qualities, 0.0).astype(jnp.float32), usable
+
+
+def _insert(rep: repertoire.Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array,
+            usable: jax.Array, cfg: Config, params: Params) -> tuple[repertoire.Repertoire, repertoire.Insertion]:
+    """Stage insert: the paper's sequential insertion rule; novelty brought up to date."""
+    return repertoire.insert(rep, actions, behaviors, qualities, usable, params.t_dist, cfg.k, _NUM_NEAR, chunk=32)
+
+
+def _archive(arch: archive_lib.Archive, before: repertoire.Repertoire, actions: jax.Array, evaluated: Evaluated,
+             ins: repertoire.Insertion) -> archive_lib.Archive:
+    """Stage archive: what each candidate's step put out of the repertoire (itself, or the skill it replaced)."""
+    from_old = ins.victim_slot >= 0
+    src = jnp.where(ins.victim_candidate >= 0, ins.victim_candidate, jnp.arange(from_old.shape[0]))
+    slot_old = jnp.maximum(ins.victim_slot, 0)
+    pick = lambda old, cand: jnp.where(  # noqa: E731
+        from_old.reshape((-1,) + (1,) * (cand.ndim - 1)), old[slot_old], cand[src])
+    return archive_lib.push(arch, pick(before.actions, actions), pick(before.behaviors, evaluated.behaviors),
+                            pick(before.qualities, evaluated.qualities), ins.archived)
+
+
+def _cover(grid: coverage.CoverageGrid, before: repertoire.Repertoire, evaluated: Evaluated,
+           ins: repertoire.Insertion, t_dist: jax.Array) -> coverage.CoverageGrid:
+    """Stage coverage: unstamps the replaced skills' disks and stamps the new skills' disks."""
+    from_old = ins.victim_slot >= 0
+    return coverage.stamp(
+        grid, jnp.concatenate([before.behaviors[jnp.maximum(ins.victim_slot, 0)], evaluated.behaviors]),
+        jnp.concatenate([-from_old.astype(jnp.int32), ins.alive.astype(jnp.int32)]), t_dist)
+
+
+def _update_emitter(key: jax.Array, state: State, candidates: Candidates, evaluated: Evaluated,
+                    rep: repertoire.Repertoire, cfg: Config, params: Params) -> tuple[Any, dict[str, jax.Array]]:
+    """Stage emitter update: the emitter learns from the results; its metrics, checked against its `metrics()`."""
+    emitter = presets.emitter(cfg)
+    proposal = Proposal(candidates.actions, candidates.rollout, candidates.info)
+    emitter_state, metrics = emitter.update(key, state.emitter, proposal, evaluated, rep, get_task(cfg), params)
+    declared = emitter.metrics()
+    if set(metrics) != set(declared):
+        raise ValueError(f"{emitter!r}.update returned the metrics {sorted(metrics)}, but its metrics() declares "
+                         f"{sorted(declared)}")
+    return emitter_state, {name: jnp.asarray(metrics[name], dtype) for name, dtype in declared.items()}
+
+
+def _metrics(state: State, candidates: Candidates, evaluated: Evaluated, task: Task) -> dict[str, jax.Array]:
+    """Stage metrics: the engine's metrics of the generation that made `state` (see `run_mqd`)."""
+    rep, usable = state.repertoire, evaluated.usable
+    count = lambda status: (evaluated.status == status).sum(dtype=jnp.int32)  # noqa: E731
+    q_low, q_high = task.quality_range
+    outside_box = ((evaluated.behaviors < jnp.asarray(task.behavior_low, jnp.float32))
+                   | (evaluated.behaviors > jnp.asarray(task.behavior_high, jnp.float32))).any(axis=1)
+    return {
+        "coverage": coverage.fraction(state.coverage),
+        "mean_quality": jnp.where(rep.valid, rep.qualities, 0.0).sum() / jnp.maximum(rep.count, 1),
+        "repertoire_size": rep.count,
+        "num_evaluations": state.num_evaluations,
+        "evaluations": candidates.rollout.sum(dtype=jnp.int32),
+        "added": count(AddStatus.ADDED),
+        "replaced": count(AddStatus.REPLACED),
+        "rejected": count(AddStatus.REJECTED),
+        "dropped_full": count(AddStatus.DROPPED_FULL),
+        "invalid": (candidates.rollout & ~usable).sum(dtype=jnp.int32),
+        "out_of_range": (usable & ((evaluated.qualities < q_low) | (evaluated.qualities > q_high))).sum(
+            dtype=jnp.int32),
+        "out_of_box": (usable & outside_box).sum(dtype=jnp.int32),
+    }
 
 
 def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array, pop: int, d: int) -> None:
@@ -226,13 +288,13 @@ def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
 
 def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
          cfg: Config, params: Params | None = None) -> tuple[State, dict[str, jax.Array]]:
-    """Insertion, archive, coverage, novelty and model training for evaluated candidates. Jitted.
+    """The stages after the rollouts: insert, archive, coverage, emitter update, metrics. Jitted.
 
     Args:
       state: the state `ask` was called with.
       candidates: what `ask` returned.
       behaviors: [P, d], qualities: [P], valid: [P] bool: the rollouts' results
-        (arrays or nested lists); rows that `candidates.evaluate` leaves out are
+        (arrays or nested lists); rows that `candidates.rollout` leaves out are
         ignored (any value).
 
     Returns:
@@ -247,69 +309,22 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
           cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
-    task, pop = get_task(cfg), cfg.population_size
-    key, _, _, k_train = jax.random.split(state.key, 4)
-    actions = candidates.actions
-    ok = candidates.evaluate & valid & jnp.isfinite(behaviors).all(axis=1) & jnp.isfinite(qualities)
-    behaviors = jnp.where(ok[:, None], behaviors, 0.0).astype(jnp.float32)
-    qualities = jnp.where(ok, qualities, 0.0).astype(jnp.float32)
-
-    before = state.repertoire
-    rep, ins = repertoire.insert(before, actions, behaviors, qualities, ok, params.t_dist, cfg.k, _NUM_NEAR,
-                                 chunk=32)
-
-    # Archive: the candidate itself, or the skill it replaced.
-    from_old = ins.victim_slot >= 0
-    from_cand = ins.victim_candidate >= 0
-    src = jnp.where(from_cand, ins.victim_candidate, jnp.arange(pop))
-    slot_old = jnp.maximum(ins.victim_slot, 0)
-    pick = lambda old, cand: jnp.where(  # noqa: E731
-        from_old.reshape((-1,) + (1,) * (cand.ndim - 1)), old[slot_old], cand[src])
-    arch = archive_lib.push(state.archive, pick(before.actions, actions), pick(before.behaviors, behaviors),
-                            pick(before.qualities, qualities), ins.archived)
-
-    # Unstamp the replaced skills' disks and stamp the new skills' disks.
-    grid = coverage.stamp(
-        state.coverage, jnp.concatenate([before.behaviors[slot_old], behaviors]),
-        jnp.concatenate([-from_old.astype(jnp.int32), ins.alive.astype(jnp.int32)]), params.t_dist)
-
-    evaluations = candidates.evaluate.sum(dtype=jnp.int32)
-    state = state.replace(num_evaluations=state.num_evaluations + evaluations)
-    # Prediction error on this generation's rollouts, before they train the model.
-    sq_err = jnp.where(ok[:, None], (candidates.pred_behaviors - behaviors) ** 2, 0.0).sum()
-    prediction_error = jnp.where(ok.any(), sq_err / (ok.sum() * task.behavior_dim), jnp.nan)
-    trained, loss = _train(state, rep, k_train, cfg, params, task)
-    state = State(repertoire=rep, archive=arch, coverage=grid, model=trained, key=key,
-                  generation=state.generation + 1, num_evaluations=state.num_evaluations)
-    count = lambda s: (ins.status == s).sum(dtype=jnp.int32)  # noqa: E731
-    q_low, q_high = task.quality_range
-    outside_box = ((behaviors < jnp.asarray(task.behavior_low, jnp.float32))
-                   | (behaviors > jnp.asarray(task.behavior_high, jnp.float32))).any(axis=1)
-    metrics = {
-        "coverage": coverage.fraction(grid),
-        "mean_quality": jnp.where(rep.valid, rep.qualities, 0.0).sum() / jnp.maximum(rep.count, 1),
-        "repertoire_size": rep.count,
-        "num_evaluations": state.num_evaluations,
-        "evaluations": evaluations,
-        "added": count(repertoire.ADDED),
-        "replaced": count(repertoire.REPLACED),
-        "rejected": count(repertoire.REJECTED),
-        "dropped_full": count(repertoire.DROPPED_FULL),
-        "invalid": (candidates.evaluate & ~ok).sum(dtype=jnp.int32),
-        "out_of_range": (ok & ((qualities < q_low) | (qualities > q_high))).sum(dtype=jnp.int32),
-        "out_of_box": (ok & outside_box).sum(dtype=jnp.int32),
-        "discarded": candidates.discarded,
-        "model_loss": loss,
-        "prediction_error": prediction_error,
-    }
-    return state, metrics
+    key, _, _, k_update = jax.random.split(state.key, 4)
+    behaviors, qualities, usable = _usable(candidates, behaviors, qualities, valid)
+    rep, ins = _insert(state.repertoire, candidates.actions, behaviors, qualities, usable, cfg, params)
+    evaluated = Evaluated(behaviors, qualities, usable, ins.status)
+    emitter_state, emitter_metrics = _update_emitter(k_update, state, candidates, evaluated, rep, cfg, params)
+    new = State(repertoire=rep, archive=_archive(state.archive, state.repertoire, candidates.actions, evaluated, ins),
+                coverage=_cover(state.coverage, state.repertoire, evaluated, ins, params.t_dist),
+                emitter=emitter_state, key=key, generation=state.generation + 1,
+                num_evaluations=state.num_evaluations + candidates.rollout.sum(dtype=jnp.int32))
+    return new, {**_metrics(new, candidates, evaluated, get_task(cfg)), **emitter_metrics}
 
 
 def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
     """One generation: exactly `ask`, the task's rollouts, `tell`."""
     candidates = ask(state, cfg, params)
-    behaviors, qualities, valid = get_task(cfg).evaluate_masked(candidates.actions, candidates.key,
-                                                                candidates.evaluate)
+    behaviors, qualities, valid = _evaluate(candidates, get_task(cfg))
     return tell(state, candidates, behaviors, qualities, valid, cfg, params)
 
 
@@ -323,13 +338,16 @@ def run_generations(state: State, cfg: Config, params: Params, num: int,
     """
     if todo is None:
         return jax.lax.scan(lambda s, _: generation(s, cfg, params), state, None, length=num)
-    skipped = {name: jnp.zeros((), dtype) for name, dtype in METRICS.items()}
+    skipped = {name: jnp.zeros((), dtype) for name, dtype in metric_dtypes(cfg).items()}
     return jax.lax.scan(lambda s, i: jax.lax.cond(i < todo, lambda: generation(s, cfg, params), lambda: (s, skipped)),
                         state, jnp.arange(num))
 
 
 def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[State, dict[str, jax.Array]]:
-    """A whole run: `cfg.max_generations` generations from an empty repertoire.
+    """A whole run: `cfg.max_generations` generations from an empty repertoire, with any emitter.
+
+    The search is the emitter `cfg.algorithm` gives: a preset's name ("mqd",
+    "qd", "random") or any `Emitter` composition (see `mqd_jax.emitters`).
 
     Args:
       key: PRNG key; the same key and config give the same result on a backend.
@@ -341,15 +359,12 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
       The final state and a dict of per-generation metrics, each of shape
       (max_generations,): coverage, mean_quality, repertoire_size,
       num_evaluations (cumulative), evaluations (rollouts this generation),
-      added, replaced, rejected, dropped_full, invalid (evaluated, but failed
-      or non-finite), discarded (turned down by M-QD's model), model_loss
-      (mean training loss of the generation's mini-batches) and
-      prediction_error (behavior MSE in real units of the model's predictions
-      on this generation's valid rollouts, before training on them; these two
-      are NaN where they do not apply: QD, RANDOM, no training or no valid
-      rollout), out_of_range (valid rollouts whose quality lies outside
-      `Task.quality_range`) and out_of_box (valid rollouts whose behavior lies
-      outside the behavior box).
+      added, replaced, rejected, dropped_full (insertion's `AddStatus`
+      counts), invalid (rolled out, but failed or non-finite), out_of_range
+      (valid rollouts whose quality lies outside `Task.quality_range`) and
+      out_of_box (valid rollouts whose behavior lies outside the behavior
+      box); then the emitter's own (`Emitter.metrics`; M-QD's model emitter:
+      discarded, model_loss, prediction_error).
 
     Raises ValueError for invalid concrete `params` (NaN, infinite, out of
     range). Called with concrete arguments it waits for the run and warns

@@ -12,11 +12,17 @@ override `reachable` if part of the behavior box cannot be reached, and
 M-QD's model maps it to its tanh output range. A backend that can skip
 rollouts (a host callback) overrides `evaluate_masked`. `layout` lists the
 scene's parts (`Region`s) that figures draw under the behaviors.
+
+A task also says which of the paper's settings apply to it (class attributes;
+the framework knows no task by name): `table_ii_column` ("2d" or "robot", the
+defaults `Config.paper` takes), `paper_seeds` (runs per algorithm in a sweep)
+and `paper_coverage` (Table I's final coverage per preset, for comparison).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import ClassVar
 
 import jax
@@ -33,6 +39,7 @@ class Region:
       low, high: the corners of its bounding box.
       shape: "box", or "disk" (the disk inscribed in the box).
       filled: filled, or drawn as a dashed outline.
+      colour: a matplotlib colour; None: grey.
     """
 
     label: str
@@ -40,6 +47,7 @@ class Region:
     high: tuple[float, float]
     shape: str = "box"
     filled: bool = True
+    colour: str | tuple[float, float, float] | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -51,9 +59,17 @@ class Task:
       behavior_low, behavior_high: the behavior box, length d.
       quality_range: (low, high) of the qualities `evaluate` returns; a class
         attribute, fixed per task. M-QD's model normalizes qualities with it.
+      table_ii_column: "2d" or "robot": the paper's Table II column of
+        defaults that `Config.paper` gives this task.
+      paper_seeds: runs per algorithm in the paper's experiments (`mqd sweep`'s default).
+      paper_coverage: the paper's Table I, {preset: (mean, std) final coverage};
+        empty for tasks the paper does not have.
     """
 
     quality_range: ClassVar[tuple[float, float]] = (0.0, 1.0)
+    table_ii_column: ClassVar[str] = "2d"
+    paper_seeds: ClassVar[int] = 25
+    paper_coverage: ClassVar[Mapping[str, tuple[float, float]]] = {}
 
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]

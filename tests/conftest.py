@@ -1,7 +1,12 @@
+import dataclasses
 import os
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
+
+from mqd_jax import Config, Task, cli, registry
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -17,3 +22,89 @@ def release_compiled_programs():
     """Drops each test module's compiled programs when it ends: hundreds of them would fill the memory."""
     yield
     jax.clear_caches()
+
+
+# Shared helpers, as fixtures: test modules do not import each other, and no test registers a task at import.
+
+def _tiny(**kw):
+    """A Config small enough for a unit test (16 candidates, 12 generations)."""
+    base = dict(population_size=16, max_generations=12, capacity=256, archive_capacity=64)
+    return Config(**{**base, **kw})
+
+
+@pytest.fixture(scope="session")
+def tiny():
+    """`tiny(**fields)`: a small Config."""
+    return _tiny
+
+
+@pytest.fixture(scope="session")
+def assert_same():
+    """Exact for integers and masks; floats may differ in the last bit when vmap reorders a reduction."""
+    def check(a, b):
+        a, b = np.asarray(a), np.asarray(b)
+        if np.issubdtype(a.dtype, np.floating):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+        else:
+            np.testing.assert_array_equal(a, b)
+
+    return check
+
+
+_TINY_FLAGS = ["--generations", "3", "--population", "8", "--capacity", "64"]
+
+
+@pytest.fixture(scope="session")
+def tiny_flags():
+    """Command-line flags of a tiny run."""
+    return _TINY_FLAGS
+
+
+@pytest.fixture(scope="session")
+def tiny_mqd_flags():
+    """Command-line flags of a tiny M-QD run (its model trains from the second generation)."""
+    return [*_TINY_FLAGS, "--warmup-samples", "8", "--num-batches", "2"]
+
+
+@pytest.fixture
+def refused(capsys):
+    """`refused(argv, match)`: runs `mqd argv`, which must exit with a usage error whose message contains `match`."""
+    def run(argv, match):
+        with pytest.raises(SystemExit) as e:
+            cli.main(argv)
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert match in err, err
+        return err
+
+    return run
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Linear(Task):
+    """Behavior and quality are known affine maps of a 3D action."""
+
+    def evaluate(self, actions, key):
+        b = 0.5 + 0.2 * jnp.stack([actions[:, 0] - actions[:, 1], actions[:, 2] + 0.5 * actions[:, 0]], axis=1)
+        return b, 0.5 + 0.3 * actions[:, 1], jnp.ones(actions.shape[0], bool)
+
+
+@pytest.fixture(scope="session")
+def linear_task():
+    """A task whose behavior and quality are known affine maps of a 3D action in [-1, 1]^3."""
+    return Linear((-1.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0))
+
+
+@pytest.fixture
+def registered():
+    """`registered(name, factory)`: registers a task for one test; it is unregistered afterwards."""
+    names = []
+
+    def register(name, factory):
+        registry.register(name, factory)
+        names.append(name)
+
+    yield register
+    for name in names:
+        registry._FACTORIES.pop(name)
+    registry._make.cache_clear()

@@ -4,30 +4,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_model import LINEAR
-from test_run import tiny
 
-import envs
-from mqd_jax import Config, adapt, init, model, run_mqd
+from mqd_jax import Config, adapt, init, model, registry, run_mqd
 from mqd_jax.adaptation import METHODS
-
-# Goals whose nearest skill is 0.02-0.1 away, well inside the linear task's reach.
-LINEAR_CFG = Config(task="linear_test", algorithm="mqd", warmup_samples=10, t_dist=1e-4, learning_rate=1e-2,
-                    num_batches=1000, adaptation_steps=5, adaptation_step_size=0.1)
 
 
 @pytest.fixture(scope="module")
-def linear_state():
+def linear_cfg(linear_task):
+    # Goals whose nearest skill is 0.02-0.1 away, well inside the linear task's reach.
+    return Config(task=linear_task, algorithm="mqd", warmup_samples=10, t_dist=1e-4, learning_rate=1e-2,
+                  num_batches=1000, adaptation_steps=5, adaptation_step_size=0.1)
+
+
+@pytest.fixture(scope="module")
+def linear_state(linear_cfg, linear_task):
     """A repertoire of 64 skills spread over the linear task, and a model trained on them."""
-    state = init(jax.random.PRNGKey(0), LINEAR_CFG)
+    state = init(jax.random.PRNGKey(0), linear_cfg)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (64, 3), minval=-0.5, maxval=0.5)
-    b, q, _ = LINEAR.evaluate(actions, None)
+    b, q, _ = linear_task.evaluate(actions, None)
     rep = state.repertoire
     n = 64
     rep = rep.replace(actions=rep.actions.at[:n].set(actions), behaviors=rep.behaviors.at[:n].set(b),
                       qualities=rep.qualities.at[:n].set(q), valid=jnp.arange(rep.capacity) < n, count=jnp.int32(n))
-    trained, _ = model.train(state.model, jax.random.PRNGKey(2), rep, LINEAR_CFG, LINEAR, jnp.float32(1e-2))
-    return state.replace(repertoire=rep, model=trained)
+    trained, _ = model.train(state.emitter.model, jax.random.PRNGKey(2), rep, linear_task, jnp.float32(1e-2),
+                             linear_cfg.batch_size, linear_cfg.num_batches)
+    return state.replace(repertoire=rep, emitter=state.emitter.replace(model=trained))
 
 
 def goals_near(state, num=32):
@@ -36,9 +37,9 @@ def goals_near(state, num=32):
     return rep.behaviors[jnp.arange(num) % int(rep.count)] + offset
 
 
-def test_nearest_is_the_nearest_skill(linear_state):
+def test_nearest_is_the_nearest_skill(linear_state, linear_cfg):
     goals = goals_near(linear_state)
-    out = adapt(linear_state, goals, jax.random.PRNGKey(0), LINEAR_CFG, "nearest")
+    out = adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "nearest")
     rep = linear_state.repertoire
     b = np.asarray(rep.behaviors[:int(rep.count)])
     brute = np.argmin(((np.asarray(goals)[:, None] - b[None]) ** 2).sum(-1), axis=1)
@@ -48,12 +49,12 @@ def test_nearest_is_the_nearest_skill(linear_state):
     np.testing.assert_array_equal(out.evaluations, 0)
 
 
-def test_linear_method_contracts_the_error_exactly_on_a_linear_task(linear_state):
+def test_linear_method_contracts_the_error_exactly_on_a_linear_task(linear_state, linear_cfg):
     # The map is affine and K = 5 >= n = 3, so J is exact and each step scales the error by 1 - lambda.
     goals = goals_near(linear_state)
-    start = adapt(linear_state, goals, jax.random.PRNGKey(0), LINEAR_CFG, "nearest").errors
+    start = adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "nearest").errors
     for steps in (1, 3, 5):
-        cfg = dataclasses.replace(LINEAR_CFG, adaptation_steps=steps)
+        cfg = dataclasses.replace(linear_cfg, adaptation_steps=steps)
         out = adapt(linear_state, goals, jax.random.PRNGKey(0), cfg, "linear")
         np.testing.assert_allclose(out.errors, 0.9 ** steps * np.asarray(start), rtol=2e-3, atol=1e-6)
         np.testing.assert_array_equal(out.steps, steps)
@@ -61,8 +62,8 @@ def test_linear_method_contracts_the_error_exactly_on_a_linear_task(linear_state
 
 
 @pytest.mark.parametrize("method", ["linear", "model"])
-def test_full_steps_reach_the_goal_and_stop(linear_state, method):
-    cfg = dataclasses.replace(LINEAR_CFG, t_dist=0.005, adaptation_step_size=1.0, adaptation_steps=10)
+def test_full_steps_reach_the_goal_and_stop(linear_state, method, linear_cfg, linear_task):
+    cfg = dataclasses.replace(linear_cfg, t_dist=0.005, adaptation_step_size=1.0, adaptation_steps=10)
     goals = goals_near(linear_state)
     out = adapt(linear_state, goals, jax.random.PRNGKey(0), cfg, method)
     assert np.all(np.asarray(out.errors) < cfg.t_dist)
@@ -72,15 +73,15 @@ def test_full_steps_reach_the_goal_and_stop(linear_state, method):
     steps = np.asarray(out.steps)
     np.testing.assert_array_equal(steps[~far], 0)
     assert np.all(steps[far] >= 1) and np.all(steps[far] <= (1 if method == "linear" else 4))
-    b, _, _ = LINEAR.evaluate(out.actions, None)
+    b, _, _ = linear_task.evaluate(out.actions, None)
     np.testing.assert_allclose(out.behaviors, b, atol=1e-6)
 
 
-def test_model_method_follows_the_linear_contraction_with_small_steps(linear_state):
+def test_model_method_follows_the_linear_contraction_with_small_steps(linear_state, linear_cfg):
     goals = goals_near(linear_state)
-    start = np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0), LINEAR_CFG, "nearest").errors)
+    start = np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "nearest").errors)
     errors = [np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0),
-                               dataclasses.replace(LINEAR_CFG, adaptation_steps=s), "model").errors)
+                               dataclasses.replace(linear_cfg, adaptation_steps=s), "model").errors)
               for s in (1, 2, 3, 4, 5)]
     last = start
     for s, e in enumerate(errors, 1):
@@ -92,16 +93,16 @@ def test_model_method_follows_the_linear_contraction_with_small_steps(linear_sta
         last = e
 
 
-def test_goals_at_skills_take_no_step(linear_state):
+def test_goals_at_skills_take_no_step(linear_state, linear_cfg):
     goals = linear_state.repertoire.behaviors[:8]
     for method in METHODS:
-        out = adapt(linear_state, goals, jax.random.PRNGKey(0), LINEAR_CFG, method)
+        out = adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, method)
         np.testing.assert_array_equal(out.steps, 0)
         np.testing.assert_array_equal(out.actions, linear_state.repertoire.actions[:8])
 
 
 @pytest.fixture(scope="module")
-def obstacle_run():
+def obstacle_run(tiny):
     cfg = tiny(task="obstacle2d", algorithm="mqd", max_generations=10, population_size=32, warmup_samples=128,
                num_batches=100)
     state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
@@ -111,7 +112,7 @@ def obstacle_run():
 def test_far_goals_give_finite_results_within_bounds(obstacle_run):
     state, cfg = obstacle_run
     goals = jnp.array([[10.0, -10.0], [-3.0, 0.5], [0.5, 100.0], [0.5, 0.5]])
-    task = envs.make("obstacle2d")
+    task = registry.make("obstacle2d")
     low, high = np.asarray(task.action_low), np.asarray(task.action_high)
     nearest = adapt(state, goals, jax.random.PRNGKey(0), cfg, "nearest")
     for method in METHODS:
@@ -135,6 +136,13 @@ def test_bad_calls_are_refused_before_tracing(obstacle_run):
         adapt(state, jnp.zeros((3, 3)), key, cfg, "linear")
     with pytest.raises(ValueError, match="repertoire is empty"):
         adapt(init(key, cfg), jnp.zeros((3, 2)), key, cfg, "linear")
-    qd_state, _ = run_mqd(key, dataclasses.replace(cfg, algorithm="qd"))
+    qd_cfg = dataclasses.replace(cfg, algorithm="qd")
+    qd_state, _ = run_mqd(key, qd_cfg)
+    with pytest.raises(ValueError, match="needs a run whose emitter is a ModelEmitter"):
+        adapt(qd_state, jnp.zeros((3, 2)), key, qd_cfg, "model")
+    with pytest.raises(ValueError, match=r"does not belong to this config.*another structure"):
+        adapt(qd_state, jnp.zeros((3, 2)), key, cfg, "linear")  # a QD state with an M-QD config
+    model = state.emitter.model
+    untrained = state.replace(emitter=state.emitter.replace(model=model.replace(steps=jnp.zeros_like(model.steps))))
     with pytest.raises(ValueError, match="needs a trained model"):
-        adapt(qd_state, jnp.zeros((3, 2)), key, cfg, "model")
+        adapt(untrained, jnp.zeros((3, 2)), key, cfg, "model")

@@ -1,15 +1,16 @@
 import dataclasses
+import hashlib
 import os
 
 import jax
 import numpy as np
 import pytest
 from flax import serialization
-from test_run import tiny
 
-from mqd_jax import checkpoint, run_mqd
+from mqd_jax import Config, checkpoint, run_mqd
 
-CFG = tiny(task="obstacle2d", algorithm="mqd", warmup_samples=64, num_batches=20)
+CFG = Config(task="obstacle2d", algorithm="mqd", warmup_samples=64, num_batches=20, population_size=16,
+             max_generations=12, capacity=256, archive_capacity=64)
 KEY = jax.random.PRNGKey(3)
 
 
@@ -79,24 +80,40 @@ def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.load(str(path), CFG, KEY)
     payload = serialization.msgpack_restore(data)
     path.write_bytes(serialization.msgpack_serialize({**payload, "format": checkpoint.FORMAT + 1}))
-    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 to 3"):
+    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 to 4"):
         checkpoint.load(str(path), CFG, KEY)
     path.write_bytes(serialization.msgpack_serialize({**payload, "sha256": "0" * 64}))
     with pytest.raises(ValueError, match="checksum does not match"):
         checkpoint.load(str(path), CFG, KEY)
 
 
-def test_format_1_checkpoints_still_load(tmp_path, uninterrupted):
-    """Format 1 kept the coverage bounds as arrays in the state; they are dropped on loading."""
+def _as_format_3(body):
+    """A format-4 checkpoint body as formats 1-3 wrote it: M-QD's model in `state["model"]` with Adam's state
+    alone, `physics_backend` in the config."""
+    state = dict(body["state"])
+    emitter = state.pop("emitter")
+    model = emitter["model"]
+    state["model"] = {"params": model["params"], "opt_state": model["opt_state"]["inner_state"]["0"],
+                      "steps": model["steps"]}
+    return {**body, "state": state, "config": {**body["config"], "physics_backend": "auto"}}
+
+
+def test_checkpoints_of_formats_1_to_3_still_load(tmp_path, uninterrupted):
+    """Formats 1-3 kept M-QD's model outside the emitter's state; format 1 also the coverage bounds as arrays."""
     path = tmp_path / "run.ckpt"
     checkpoint.save(str(path), *uninterrupted, CFG, KEY)
-    payload = serialization.msgpack_restore(serialization.msgpack_restore(path.read_bytes())["body"])
-    coverage = {**payload["state"]["coverage"], "low": np.zeros(2, np.float32), "high": np.ones(2, np.float32)}
-    old = {**payload, "format": 1, "state": {**payload["state"], "coverage": coverage}}
-    path.write_bytes(serialization.msgpack_serialize(old))
+    body = _as_format_3(serialization.msgpack_restore(serialization.msgpack_restore(path.read_bytes())["body"]))
+    packed = serialization.msgpack_serialize(body)
+    path.write_bytes(serialization.msgpack_serialize({"format": 3, "sha256": hashlib.sha256(packed).hexdigest(),
+                                                      "body": packed}))
     state, metrics = checkpoint.load(str(path), CFG, KEY)
     assert_trees_equal(state, uninterrupted[0])
     assert_trees_equal(metrics, uninterrupted[1])
+    coverage = {**body["state"]["coverage"], "low": np.zeros(2, np.float32), "high": np.ones(2, np.float32)}
+    old = {**body, "format": 1, "state": {**body["state"], "coverage": coverage}}
+    path.write_bytes(serialization.msgpack_serialize(old))
+    state, metrics = checkpoint.load(str(path), CFG, KEY)
+    assert_trees_equal(state, uninterrupted[0])
     path.write_bytes(serialization.msgpack_serialize({**old, "format": 2}))  # the arrays are not part of format 2
     with pytest.raises(ValueError, match="does not fit this config"):
         checkpoint.load(str(path), CFG, KEY)

@@ -9,10 +9,8 @@ import sys
 import jax
 import numpy as np
 import pytest
-from test_trust import TINY, refused
 
-import envs
-from mqd_jax import Config, ask, checkpoint, cli, init, run_mqd, tell
+from mqd_jax import Config, ask, checkpoint, cli, init, registry, run_mqd, tell
 
 
 def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_path, caplog):
@@ -26,8 +24,8 @@ def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_pat
         np.testing.assert_array_equal(chunked[name], values, err_msg=name)
 
 
-def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch):
-    argv = ["run", *TINY, "--generations", "4", "--chunk", "2", "--algorithm", "mqd", "--warmup-samples", "8",
+def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch, tiny_flags):
+    argv = ["run", *tiny_flags, "--generations", "4", "--chunk", "2", "--algorithm", "mqd", "--warmup-samples", "8",
             "--num-batches", "2", "--out", str(tmp_path)]
     chunk = cli._Progress.chunk
 
@@ -54,18 +52,18 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
     np.testing.assert_array_equal(metrics["coverage"], whole["coverage"])
 
 
-def test_resume_without_a_checkpoint_and_chunk_zero_are_refused(tmp_path, capsys):
-    refused(["run", *TINY, "--resume", "--out", str(tmp_path)], capsys, "holds no checkpoint")
-    refused(["run", *TINY, "--chunk", "0", "--out", str(tmp_path)], capsys, "0 is invalid: expected an int >= 1")
-    refused(["sweep", "--seeds", "0"], capsys, "expected an int >= 1")
+def test_resume_without_a_checkpoint_and_chunk_zero_are_refused(tmp_path, capsys, refused, tiny_flags):
+    refused(["run", *tiny_flags, "--resume", "--out", str(tmp_path)], "holds no checkpoint")
+    refused(["run", *tiny_flags, "--chunk", "0", "--out", str(tmp_path)], "0 is invalid: expected an int >= 1")
+    refused(["sweep", "--seeds", "0"], "expected an int >= 1")
 
 
-def test_a_file_as_out_and_damaged_results_name_the_file(tmp_path, capsys):
+def test_a_file_as_out_and_damaged_results_name_the_file(tmp_path, capsys, refused, tiny_flags):
     (tmp_path / "file").write_text("")
-    refused(["run", *TINY, "--out", str(tmp_path / "file")], capsys, "is a file, not a folder")
+    refused(["run", *tiny_flags, "--out", str(tmp_path / "file")], "is a file, not a folder")
     (tmp_path / "obstacle2d_qd.json").write_text('{"config": {"task": "obst')
     (tmp_path / "obstacle2d_qd.npz").write_bytes(b"")
-    refused(["plot", str(tmp_path)], capsys, f"cannot read {str(tmp_path / 'obstacle2d_qd.json')!r}")
+    refused(["plot", str(tmp_path)], f"cannot read {str(tmp_path / 'obstacle2d_qd.json')!r}")
 
 
 def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
@@ -75,7 +73,7 @@ def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
     assert "--max-generations MAX_GENERATIONS, --generations MAX_GENERATIONS Config.max_generations (default: 100)" \
         in text
     assert "(default: 0)" in text and "(default: results/run)" in text and "(default: 25)" in text
-    assert "obstacle2d, object2d, push_cube, push_sphere, place" in text and "package.module:factory" in text
+    assert "object2d, obstacle2d, place, push_cube, push_sphere" in text and "package.module:factory" in text
     with pytest.raises(SystemExit):
         cli.main(["sweep", "--help"])
     text = " ".join(capsys.readouterr().out.split())
@@ -93,7 +91,7 @@ def test_tell_takes_nested_lists():
     cfg = Config(population_size=4, capacity=16)
     state = init(jax.random.PRNGKey(0), cfg)
     candidates = ask(state, cfg)
-    b, q, v = envs.make("obstacle2d").evaluate(candidates.actions, candidates.key)
+    b, q, v = registry.make("obstacle2d").evaluate(candidates.actions, candidates.key)
     from_lists, _ = tell(state, candidates, np.asarray(b).tolist(), np.asarray(q).tolist(), np.asarray(v).tolist(),
                          cfg)
     from_arrays, _ = tell(state, candidates, b, q, v, cfg)
@@ -101,15 +99,15 @@ def test_tell_takes_nested_lists():
         np.testing.assert_array_equal(x, y)
 
 
-def test_a_plugin_task_runs_from_the_command_line(tmp_path, capsys):
-    cli.main(["run", "--task", "plugin_tasks:make_reach", *TINY, "--out", str(tmp_path)])
+def test_a_plugin_task_runs_from_the_command_line(tmp_path, capsys, refused, tiny_flags):
+    cli.main(["run", "--task", "plugin_tasks:make_reach", *tiny_flags, "--out", str(tmp_path)])
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["config"]["task"] == "plugin_tasks:make_reach" and saved["metrics"]["repertoire_size"][-1] > 0
-    refused(["run", "--task", "plugin_tasks:missing", "--out", str(tmp_path / "b")], capsys,
+    refused(["run", "--task", "plugin_tasks:missing", "--out", str(tmp_path / "b")],
             "cannot load the factory 'missing' from module 'plugin_tasks'")
-    refused(["run", "--task", "plugin_tasks:Reach", "--out", str(tmp_path / "b")], capsys,  # not a factory
+    refused(["run", "--task", "plugin_tasks:Reach", "--out", str(tmp_path / "b")],  # not a factory
             "task 'plugin_tasks:Reach': its factory failed (TypeError:")
-    refused(["run", "--task", "os:getcwd", "--out", str(tmp_path / "b")], capsys,
+    refused(["run", "--task", "os:getcwd", "--out", str(tmp_path / "b")],
             "task 'os:getcwd': its factory returned a str, not a mqd_jax.Task")
 
 
@@ -117,10 +115,10 @@ def test_a_task_from_an_installed_packages_entry_point(tmp_path, monkeypatch):
     info = tmp_path / "reach_plugin-1.0.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: reach-plugin\nVersion: 1.0\n")
-    (info / "entry_points.txt").write_text(f"[{envs.ENTRY_POINT_GROUP}]\nentry_reach = plugin_tasks:make_reach\n")
+    (info / "entry_points.txt").write_text(f"[{registry.ENTRY_POINT_GROUP}]\nentry_reach = plugin_tasks:make_reach\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    envs._register_entry_points.cache_clear()
-    assert "entry_reach" in envs.registered_tasks()
+    registry._entry_points.cache_clear()
+    assert "entry_reach" in registry.registered_tasks()
     state, _ = run_mqd(jax.random.PRNGKey(0), Config(task="entry_reach", max_generations=2, population_size=8,
                                                      capacity=64))
     assert int(state.repertoire.count) > 0

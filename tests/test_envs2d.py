@@ -2,9 +2,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
 from envs import arena2d
 from envs.object2d import OBJECT_RADIUS, OBJECT_START
+from mqd_jax import registry
 
 
 def _action(*subs):
@@ -12,7 +12,7 @@ def _action(*subs):
 
 
 def test_straight_motion_and_full_quality():
-    task = envs.make("obstacle2d")
+    task = registry.make("obstacle2d")
     # Left for 2 steps from (0.5, 0.1): x decreases by 2 * DT, quality 1 (straight line).
     a = _action([-1, 0, 2], [0, 0, 0], [0, 0, 0])
     b, q, valid = task.evaluate(a)
@@ -21,13 +21,13 @@ def test_straight_motion_and_full_quality():
 
 
 def test_fractional_duration_is_continuous():
-    task = envs.make("obstacle2d")
+    task = registry.make("obstacle2d")
     b, _, _ = task.evaluate(_action([1, 0, 2.5], [0, 0, 0], [0, 0, 0]))
     np.testing.assert_allclose(b[0], [0.5 + 2.5 * arena2d.DT, 0.1], atol=1e-6)
 
 
 def test_walls_and_obstacles_block_and_agent_slides():
-    task = envs.make("obstacle2d")
+    task = registry.make("obstacle2d")
     # Up from the start hits the block at y = 0.2 (x = 0.5 is inside its x-span).
     b, _, _ = task.evaluate(_action([0, 1, 10], [0, 0, 0], [0, 0, 0]))
     np.testing.assert_allclose(b[0], [0.5, 0.2], atol=1e-6)
@@ -40,7 +40,7 @@ def test_walls_and_obstacles_block_and_agent_slides():
 
 
 def test_detour_has_quality_below_one_and_geodesic_is_exact():
-    task = envs.make("obstacle2d")
+    task = registry.make("obstacle2d")
     # Around the block above the start: right, up past it, then left to above its centre.
     a = _action([1, 0, 3], [0, 1, 5], [-1, 0, 3])
     b, q, _ = task.evaluate(a)
@@ -55,13 +55,13 @@ def test_detour_has_quality_below_one_and_geodesic_is_exact():
 
 def test_never_moving_has_quality_one():
     for name in ("obstacle2d", "object2d"):
-        task = envs.make(name)
+        task = registry.make(name)
         _, q, _ = task.evaluate(np.zeros((1, task.action_dim), np.float32))
         assert q[0] == 1.0
 
 
 def test_object_is_pushed_in_the_push_direction():
-    task = envs.make("object2d")
+    task = registry.make("object2d")
     idle = [0, 0, 0]
     # Straight up from (0.5, 0.2) into the object at (0.5, 0.5): it moves up only.
     b, q, _ = task.evaluate(_action([0, 1, 10], [0, 1, 4], idle, idle, idle))
@@ -76,7 +76,7 @@ def test_object_is_pushed_in_the_push_direction():
 
 def test_numpy_and_jax_paths_agree():
     for name in ("obstacle2d", "object2d"):
-        task = envs.make(name)
+        task = registry.make(name)
         a = np.random.default_rng(0).uniform(task.action_low, task.action_high, (64, task.action_dim))
         a = a.astype(np.float32)
         bn, qn, _ = task.evaluate(a)

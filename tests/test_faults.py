@@ -4,11 +4,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_run import tiny
 
-import envs
 from envs.obstacle2d import Obstacle2D
-from mqd_jax import Task, run_mqd
+from mqd_jax import Task, registry, run_mqd
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -38,12 +36,12 @@ def fails(a):
     return nan_behavior(a) | inf_quality(a) | invalid(a)
 
 
-envs.register("faulty_test", lambda: Faulty(*dataclasses.astuple(envs.make("obstacle2d"))[:4]))
+FAULTY = Faulty(*dataclasses.astuple(registry.make("obstacle2d"))[:4])
 
 
 @pytest.mark.parametrize("algorithm", ["qd", "mqd"])
-def test_failed_rollouts_are_counted_but_never_stored(algorithm):
-    cfg = tiny(task="faulty_test", algorithm=algorithm, warmup_samples=64, num_batches=20)
+def test_failed_rollouts_are_counted_but_never_stored(algorithm, tiny):
+    cfg = tiny(task=FAULTY, algorithm=algorithm, warmup_samples=64, num_batches=20)
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     invalid_count = np.asarray(m["invalid"])
     # Uniform first-generation actions fail ~60% of the time; children of stored skills rarely do.
@@ -56,7 +54,7 @@ def test_failed_rollouts_are_counted_but_never_stored(algorithm):
     assert not fails(np.asarray(arch.actions[:stored])).any()
     assert np.isfinite(np.asarray(rep.behaviors)).all() and np.isfinite(np.asarray(rep.qualities)).all()
     if algorithm == "mqd":  # the model trains on the repertoire only, so it stays finite
-        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.model.params))
+        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.emitter.model.params))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -83,8 +81,7 @@ class Broken(Task):
     ("two_outputs", r"must return \(behaviors"),
     ("raises", r"evaluate\(actions \[16, 3\], key\) failed"),
 ])
-def test_a_task_with_wrong_outputs_is_refused_at_the_first_call(out, message):
-    name = f"broken_{out}_test"
-    envs.register(name, lambda: Broken((0.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0), out))
+def test_a_task_with_wrong_outputs_is_refused_at_the_first_call(out, message, tiny):
+    task = Broken((0.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0), out)
     with pytest.raises(ValueError, match=message):
-        run_mqd(jax.random.PRNGKey(0), tiny(task=name))
+        run_mqd(jax.random.PRNGKey(0), tiny(task=task))

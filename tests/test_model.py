@@ -3,25 +3,14 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
-from test_run import tiny
 
-import envs
 from envs.obstacle2d import Obstacle2D
-from mqd_jax import Config, Task, model, run_mqd
-from mqd_jax import filter as model_filter
+from mqd_jax import Config, acquisition, model, registry, run_mqd
 from mqd_jax.repertoire import Repertoire
 
 POISON = 1e6
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class Linear(Task):
-    """Behavior and quality are known affine maps of a 3D action."""
-
-    def evaluate(self, actions, key):
-        b = 0.5 + 0.2 * jnp.stack([actions[:, 0] - actions[:, 1], actions[:, 2] + 0.5 * actions[:, 0]], axis=1)
-        return b, 0.5 + 0.3 * actions[:, 1], jnp.ones(actions.shape[0], bool)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -33,9 +22,7 @@ class Poisoned(Obstacle2D):
         return jnp.where(mask[:, None], b, 0.5), jnp.where(mask, q, POISON), v
 
 
-LINEAR = Linear((-1.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0))
-envs.register("linear_test", lambda: LINEAR)
-envs.register("poisoned_test", lambda: Poisoned(*dataclasses.astuple(envs.make("obstacle2d"))[:4]))
+POISONED = Poisoned(*dataclasses.astuple(registry.make("obstacle2d"))[:4])
 
 
 def repertoire_of(behaviors, qualities, capacity=8):
@@ -50,20 +37,20 @@ def test_filter_scores_and_decision_by_hand():
     rep = repertoire_of([[0.0, 0.0], [0.3, 0.4], [1.0, 0.0]], [0.5, 0.2, 0.9])
     pred_b = jnp.array([[0.0, 0.0], [0.6, 0.8]])
     pred_q = jnp.array([0.6, 0.1])
-    nov, qua = model_filter.predicted_scores(pred_b, pred_q, rep, k=2)
+    nov, qua = acquisition.predicted_scores(pred_b, pred_q, rep, k=2)
     # Candidate 0: nearest are slot 0 (d 0) and slot 1 (d 0.5). Candidate 1: slot 1 (d 0.5), slot 2 (d sqrt(0.8)).
     np.testing.assert_allclose(nov, [0.25, (0.5 + np.sqrt(0.8)) / 2], rtol=1e-6)
     np.testing.assert_allclose(qua, [((0.6 - 0.5) + (0.6 - 0.2)) / 2, ((0.1 - 0.2) + (0.1 - 0.9)) / 2], rtol=1e-6)
-    np.testing.assert_array_equal(model_filter.passes(nov, qua, 0.3, 0.0), [True, True])  # 0 by quality, 1 by novelty
-    np.testing.assert_array_equal(model_filter.passes(nov, qua, 0.3, 0.3), [False, True])
-    np.testing.assert_array_equal(model_filter.passes(nov, qua, 0.7, 0.3), [False, False])
+    np.testing.assert_array_equal(acquisition.passes(nov, qua, 0.3, 0.0), [True, True])  # 0 by quality, 1 by novelty
+    np.testing.assert_array_equal(acquisition.passes(nov, qua, 0.3, 0.3), [False, True])
+    np.testing.assert_array_equal(acquisition.passes(nov, qua, 0.7, 0.3), [False, False])
     # Fewer than K skills: the mean runs over those there are; none: everything passes.
-    nov1, qua1 = model_filter.predicted_scores(pred_b, pred_q, repertoire_of([[0.3, 0.4]], [0.2]), k=5)
+    nov1, qua1 = acquisition.predicted_scores(pred_b, pred_q, repertoire_of([[0.3, 0.4]], [0.2]), k=5)
     np.testing.assert_allclose(nov1, [0.5, 0.5], rtol=1e-6)
     np.testing.assert_allclose(qua1, [0.4, -0.1], rtol=1e-6)
-    nov0, qua0 = model_filter.predicted_scores(pred_b, pred_q, Repertoire.empty(8, 1, 2, 4), k=5)
-    assert np.all(np.isinf(nov0)) and np.all(model_filter.passes(nov0, qua0, 1e9, 1e9))
-    assert not model_filter.passes(jnp.array([jnp.nan]), jnp.array([jnp.nan]), 0.0, -1.0)[0]
+    nov0, qua0 = acquisition.predicted_scores(pred_b, pred_q, Repertoire.empty(8, 1, 2, 4), k=5)
+    assert np.all(np.isinf(nov0)) and np.all(acquisition.passes(nov0, qua0, 1e9, 1e9))
+    assert not acquisition.passes(jnp.array([jnp.nan]), jnp.array([jnp.nan]), 0.0, -1.0)[0]
 
 
 def test_budgeted_order_by_hand():
@@ -71,38 +58,36 @@ def test_budgeted_order_by_hand():
     qua = jnp.array([0.0, 0.2, -0.1, 0.3, jnp.nan, 0.1, -0.2])
     # Novel (> 0.04): 2, then 0 and 5 tied on novelty -> higher qua first (5, 0).
     # The rest by qua: 3 (0.3), 1 (0.2), 6 (-0.2); the NaN prediction (4) last.
-    np.testing.assert_array_equal(model_filter.budgeted_order(nov, qua, 0.04), [2, 5, 0, 3, 1, 6, 4])
+    np.testing.assert_array_equal(acquisition.ranking(nov, qua, 0.04, jnp.ones(7, bool)), [2, 5, 0, 3, 1, 6, 4])
 
 
-def test_predict_maps_tanh_outputs_to_real_units():
-    cfg = Config(task="linear_test", algorithm="mqd", warmup_samples=10, hidden_size=4)
-    ms = model.init(jax.random.PRNGKey(0), cfg, LINEAR)
+def test_predict_maps_tanh_outputs_to_real_units(linear_task):
+    ms = model.init(jax.random.PRNGKey(0), 4, linear_task)
     want = np.array([-0.5, 0.25, 0.8], np.float32)  # normalized behavior x, y and quality
     p = ms.params["params"]
     params = {"params": {"Dense_0": p["Dense_0"], "Dense_1": {"kernel": jnp.zeros_like(p["Dense_1"]["kernel"]),
                                                               "bias": jnp.arctanh(jnp.asarray(want))}}}
-    b, q = model.predict(ms.replace(params=params), jnp.zeros((3, 3)), cfg, LINEAR)
+    b, q = model.predict(ms.replace(params=params), jnp.zeros((3, 3)), linear_task)
     # Behavior box [0, 1]^2 and the default quality range (0, 1): x = (y + 1) / 2.
     np.testing.assert_allclose(b, np.broadcast_to([0.25, 0.625], (3, 2)), rtol=1e-5)
     np.testing.assert_allclose(q, [0.9] * 3, rtol=1e-5)
 
 
-def test_model_learns_a_linear_map():
-    cfg = Config(task="linear_test", algorithm="mqd", warmup_samples=10, learning_rate=1e-2, num_batches=300)
+def test_model_learns_a_linear_map(linear_task):
     actions = jax.random.uniform(jax.random.PRNGKey(1), (512, 3), minval=-1.0, maxval=1.0)
-    b, q, _ = LINEAR.evaluate(actions, None)
+    b, q, _ = linear_task.evaluate(actions, None)
     rep = Repertoire.empty(512, 3, 2, 4).replace(actions=actions, behaviors=b, qualities=q,
                                                  valid=jnp.ones(512, bool), count=jnp.int32(512))
-    ms = model.init(jax.random.PRNGKey(0), cfg, LINEAR)
+    ms = model.init(jax.random.PRNGKey(0), 32, linear_task)
     test = jax.random.uniform(jax.random.PRNGKey(2), (256, 3), minval=-1.0, maxval=1.0)
-    tb, tq, _ = LINEAR.evaluate(test, None)
+    tb, tq, _ = linear_task.evaluate(test, None)
 
     def error(m):
-        pb, pq = model.predict(m, test, cfg, LINEAR)
+        pb, pq = model.predict(m, test, linear_task)
         return float(jnp.mean((pb - tb) ** 2)), float(jnp.mean((pq - tq) ** 2))
 
     before = error(ms)
-    trained, loss = model.train(ms, jax.random.PRNGKey(3), rep, cfg, LINEAR, jnp.float32(cfg.learning_rate))
+    trained, loss = model.train(ms, jax.random.PRNGKey(3), rep, linear_task, jnp.float32(1e-2), 16, 300)
     after = error(trained)
     assert int(trained.steps) == 300
     assert after[0] < 1e-3 and after[1] < 1e-3, after  # RMS error < 0.03 on a range of ~0.6
@@ -114,11 +99,11 @@ def run(cfg):
     return run_mqd(jax.random.PRNGKey(4), cfg)
 
 
-def test_mqd_with_an_always_passing_filter_equals_qd():
+def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
     qd = tiny(task="obstacle2d", algorithm="qd")
     mqd = dataclasses.replace(qd, algorithm="mqd", t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
     (s_qd, m_qd), (s_mqd, m_mqd) = run(qd), run(mqd)
-    assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.model.steps) == 20 * 9
+    assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.emitter.model.steps) == 20 * 9
     for field in ("repertoire", "archive", "coverage", "key", "generation", "num_evaluations"):
         for a, b in zip(jax.tree.leaves(getattr(s_qd, field)), jax.tree.leaves(getattr(s_mqd, field)), strict=True):
             np.testing.assert_array_equal(a, b)
@@ -139,15 +124,15 @@ def check_masked_rows_left_no_trace(cfg, state, m):
     return evaluations, discarded
 
 
-def test_discarded_candidates_are_never_evaluated_counted_or_inserted():
-    cfg = tiny(task="poisoned_test", algorithm="mqd", warmup_samples=64, num_batches=50, t_nov=0.05, t_qua=0.05)
+def test_discarded_candidates_are_never_evaluated_counted_or_inserted(tiny):
+    cfg = tiny(task=POISONED, algorithm="mqd", warmup_samples=64, num_batches=50, t_nov=0.05, t_qua=0.05)
     state, m = run(cfg)
     evaluations, discarded = check_masked_rows_left_no_trace(cfg, state, m)
     assert discarded.sum() > 0 and evaluations[4:].min() < cfg.population_size
 
 
-def test_budgeted_mode_evaluates_exactly_the_population():
-    cfg = tiny(task="poisoned_test", algorithm="mqd", warmup_samples=64, num_batches=50, budgeted=True,
+def test_budgeted_mode_evaluates_exactly_the_population(tiny):
+    cfg = tiny(task=POISONED, algorithm="mqd", warmup_samples=64, num_batches=50, budgeted=True,
                pool_factor=3)
     state, m = run(cfg)
     evaluations, discarded = check_masked_rows_left_no_trace(cfg, state, m)
@@ -155,7 +140,7 @@ def test_budgeted_mode_evaluates_exactly_the_population():
     np.testing.assert_array_equal(discarded, [0] * 4 + [2 * cfg.population_size] * (cfg.max_generations - 4))
 
 
-def test_warm_up_runs_as_qd_and_does_not_train():
+def test_warm_up_runs_as_qd_and_does_not_train(tiny):
     # A filter that turns down everything once the model is in use.
     cfg = tiny(task="obstacle2d", algorithm="mqd", warmup_samples=70, num_batches=10, t_nov=1e3, t_qua=1e3)
     state, m = run(cfg)
@@ -168,7 +153,7 @@ def test_warm_up_runs_as_qd_and_does_not_train():
     # Training starts at the end of the generation that completes warm-up, and then every generation.
     trained = np.isfinite(np.asarray(m["model_loss"]))
     np.testing.assert_array_equal(trained, np.asarray(m["num_evaluations"]) >= cfg.warmup_samples)
-    assert int(state.model.steps) == cfg.num_batches * trained.sum()
+    assert int(state.emitter.model.steps) == cfg.num_batches * trained.sum()
     assert np.all(np.isfinite(np.asarray(m["prediction_error"])[warm]))
     assert np.all(np.isnan(np.asarray(m["prediction_error"])[~warm]))  # nothing evaluated
 
@@ -182,3 +167,29 @@ def test_warm_up_runs_as_qd_and_does_not_train():
 def test_model_config_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Config.{field}="):
         Config(**kw)
+
+
+def test_a_training_step_is_one_optax_adam_step_at_the_traced_learning_rate(linear_task):
+    ms = model.init(jax.random.PRNGKey(0), 8, linear_task)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (16, 3), minval=-1.0, maxval=1.0)
+    b, q, _ = linear_task.evaluate(actions, None)
+    rep = Repertoire.empty(16, 3, 2, 4).replace(actions=actions, behaviors=b, qualities=q, valid=jnp.ones(16, bool),
+                                                count=jnp.int32(16))
+    key, rate = jax.random.PRNGKey(2), 0.05
+    trained, loss = model.train(ms, key, rep, linear_task, jnp.float32(rate), 16, 1)
+    # The same mini-batch, by hand, through optax.adam.
+    rows = jax.random.randint(key, (1, 16), 0, rep.count)[0]
+    x = model.normalize_actions(actions[rows], linear_task)
+    y = model.normalize_targets(b[rows], q[rows], linear_task)
+    net = model.network(8, linear_task)
+    want_loss, grads = jax.value_and_grad(lambda p: ((net.apply(p, x) - y) ** 2).mean())(ms.params)
+    adam = optax.adam(rate)
+    updates, _ = adam.update(grads, adam.init(ms.params), ms.params)
+    want = optax.apply_updates(ms.params, updates)
+    for got, expected in zip(jax.tree.leaves(trained.params), jax.tree.leaves(want), strict=True):
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7)
+    assert float(loss) == pytest.approx(float(want_loss), rel=1e-6)
+    # Adam's first step moves every parameter with a gradient by the learning rate.
+    step = max(float(jnp.abs(a - c).max()) for a, c in zip(jax.tree.leaves(trained.params),
+                                                             jax.tree.leaves(ms.params), strict=True))
+    assert step == pytest.approx(rate, rel=1e-3)

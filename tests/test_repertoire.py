@@ -6,9 +6,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mqd_jax import neighbours
-from mqd_jax.repertoire import ADDED, DROPPED_FULL, REJECTED, REPLACED, SKIPPED, Repertoire, insert
+from mqd_jax.repertoire import AddStatus, Repertoire, insert
 
-NAMES = {SKIPPED: "skipped", ADDED: "added", REPLACED: "replaced", REJECTED: "rejected", DROPPED_FULL: "dropped"}
+NAMES = {AddStatus.SKIPPED: "skipped", AddStatus.ADDED: "added", AddStatus.REPLACED: "replaced",
+         AddStatus.REJECTED: "rejected", AddStatus.DROPPED_FULL: "dropped"}
 K = 3
 
 
@@ -20,26 +21,32 @@ def _insert_fn(rep, actions, behaviors, qualities, ok, t_dist):
 _insert = jax.jit(_insert_fn)
 
 
-def _batches(draw_seed: int, generations: int, pop: int, spread: float):
+def _batches(draw_seed: int, generations: int, pop: int, spread: float, lattice: bool = False):
     rng = np.random.default_rng(draw_seed)
     for _ in range(generations):
         # Behaviors on a coarse lattice plus noise: many near-duplicates, so
         # replacements of pre-generation skills and of earlier candidates of the
         # same generation both happen, and the M=2 near lists get exhausted.
-        centre = rng.integers(0, 4, (pop, 2)) * spread
-        b = (centre + rng.normal(0, spread / 3, (pop, 2))).astype(np.float32)
+        # `lattice`: no noise, on a grid of 1/16 (distances exact in float32): exact ties between skills.
+        if lattice:
+            b = (rng.integers(0, 6, (pop, 2)) / 16).astype(np.float32)
+        else:
+            centre = rng.integers(0, 4, (pop, 2)) * spread
+            b = (centre + rng.normal(0, spread / 3, (pop, 2))).astype(np.float32)
         q = rng.random(pop).astype(np.float32)
         ok = rng.random(pop) > 0.15
         yield b, q, ok
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 10_000), capacity=st.sampled_from([6, 40]), spread=st.sampled_from([0.05, 0.2]))
-def test_insertion_matches_sequential_reference(seed, capacity, spread):
+@given(seed=st.integers(0, 10_000), capacity=st.sampled_from([6, 40]), spread=st.sampled_from([0.05, 0.2]),
+       lattice=st.booleans())
+def test_insertion_matches_sequential_reference(seed, capacity, spread, lattice):
+    """The oracle scans the slots in order: of equally near skills, the lowest slot is the nearest."""
     pop, t_dist = 12, 0.1
     rep = Repertoire.empty(capacity, 1, 2, K + 2)
     ref_b, ref_q = np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
-    for b, q, ok in _batches(seed, 4, pop, spread):
+    for b, q, ok in _batches(seed, 4, pop, spread, lattice):
         actions = jnp.asarray(np.arange(pop, dtype=np.float32)[:, None])
         before_b, before_q = np.asarray(rep.behaviors), np.asarray(rep.qualities)
         rep, ins = _insert(rep, actions, jnp.asarray(b), jnp.asarray(q), jnp.asarray(ok), jnp.float32(t_dist))
@@ -66,6 +73,18 @@ def test_insertion_matches_sequential_reference(seed, capacity, spread):
         # Novelty and the neighbour lists against brute force.
         np.testing.assert_allclose(np.asarray(rep.novelty[:n]), reference.novelty(ref_b, K), rtol=1e-5, atol=1e-6)
         _check_lists(rep, n)
+
+
+def test_a_tie_between_two_skills_of_the_same_generation_goes_to_the_lower_slot():
+    """Candidate 2 is 0.09375 from candidate 0 (added in slot 1) and from candidate 1 (which replaced slot 0):
+    slot 0 is the nearest, whose quality it does not beat. Picking the earlier candidate would replace slot 1."""
+    rep = Repertoire.empty(8, 1, 2, K + 2)
+    rep, _ = _insert(rep, jnp.zeros((1, 1)), jnp.zeros((1, 2)), jnp.array([0.5]), jnp.array([True]), jnp.float32(0.1))
+    b = jnp.array([[0.25, 0.0], [0.0625, 0.0], [0.15625, 0.0]])
+    rep, ins = _insert(rep, jnp.zeros((3, 1)), b, jnp.array([0.1, 0.9, 0.5]), jnp.ones(3, bool), jnp.float32(0.1))
+    assert [NAMES[int(s)] for s in ins.status] == ["added", "replaced", "rejected"]
+    np.testing.assert_array_equal(ins.slot[:2], [1, 0])
+    np.testing.assert_array_equal(rep.qualities[:2], np.float32([0.9, 0.1]))
 
 
 def _check_lists(rep, n):
@@ -110,18 +129,18 @@ def test_insertion_invariants(seed, capacity, spread):
         rep, ins = _insert(rep, jnp.zeros((pop, 1)), b, q, ok, t_dist)
         status, slot = np.asarray(ins.status), np.asarray(ins.slot)
         for i in range(pop):
-            if status[i] == REPLACED:
+            if status[i] == AddStatus.REPLACED:
                 # Only a candidate within t_dist of the skill it replaces, and only with a higher quality:
                 # the quality of a niche never decreases.
                 assert np.linalg.norm(before_b[slot[i]] - b[i]) <= t_dist + 1e-6
                 assert q[i] > before_q[slot[i]]
-            if status[i] in (ADDED, REPLACED):
+            if status[i] in (AddStatus.ADDED, AddStatus.REPLACED):
                 before_b[slot[i]], before_q[slot[i]] = b[i], q[i]
         np.testing.assert_array_equal(before_b, rep.behaviors)  # the replay is the repertoire
         assert int(rep.count) == int(np.asarray(rep.valid).sum())
-        assert np.all(status[~ok] == SKIPPED)
+        assert np.all(status[~ok] == AddStatus.SKIPPED)
         # The archive receives every evaluated candidate that was not added, or the skill it replaced.
-        assert int(np.asarray(ins.archived).sum()) == ok.sum() - (status == ADDED).sum()
+        assert int(np.asarray(ins.archived).sum()) == ok.sum() - (status == AddStatus.ADDED).sum()
 
 
 def test_vmapped_insertion_equals_member_by_member():

@@ -6,14 +6,13 @@ import mujoco
 import numpy as np
 import pytest
 
-import envs
 from envs import kuka
-from mqd_jax import Config, run_mqd
+from mqd_jax import Config, registry, run_mqd
 
 
 @pytest.fixture(scope="module")
 def cube():
-    return envs.make("push_cube")
+    return registry.make("push_cube")
 
 
 def test_forward_kinematics_is_mujocos():
@@ -79,8 +78,7 @@ def test_a_vmapped_run_makes_one_rollout_call_per_generation():
 
     counting.sensors_start = inner.sensors_start
     object.__setattr__(task, "_rollout", counting)
-    envs.register("push_count_test", lambda: task)
-    cfg = Config(task="push_count_test", population_size=8, max_generations=2, capacity=64, archive_capacity=16)
+    cfg = Config(task=task, population_size=8, max_generations=2, capacity=64, archive_capacity=16)
     jax.vmap(lambda k: run_mqd(k, cfg))(jax.random.split(jax.random.PRNGKey(0), 3))
     assert calls == [(3, 8, task.horizon, 7)] * 2  # all seeds' rollouts in one call per generation
 
@@ -118,7 +116,7 @@ def test_the_ik_jacobian_is_the_residuals_derivative():
 def test_a_released_cube_comes_to_rest_on_the_surface_below():
     from envs import place
 
-    task = envs.make("place", backend="mujoco")
+    task = registry.make("place", backend="mujoco")
 
     def via(x, y, z):
         return [x, y, z, 0.0, 100.0]

@@ -5,25 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, run_mqd
-
-
-def assert_same(a, b):
-    """Exact for integers and masks; floats may differ in the last bit when vmap reorders a reduction."""
-    a, b = np.asarray(a), np.asarray(b)
-    if np.issubdtype(a.dtype, np.floating):
-        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
-    else:
-        np.testing.assert_array_equal(a, b)
-
-
-def tiny(**kw):
-    base = dict(population_size=16, max_generations=12, capacity=256, archive_capacity=64)
-    return Config(**{**base, **kw})
+from mqd_jax import Config, registry, run_mqd
 
 
 @pytest.mark.parametrize("task", ["obstacle2d", "object2d"])
-def test_coverage_grows_and_metrics_are_consistent(task):
+def test_coverage_grows_and_metrics_are_consistent(task, tiny):
     cfg = tiny(task=task, max_generations=20, population_size=32)
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     cov = np.asarray(m["coverage"])
@@ -48,12 +34,11 @@ def test_coverage_grows_and_metrics_are_consistent(task):
 
 
 def cfg_task(cfg):
-    import envs
 
-    return envs.make(cfg.task)
+    return registry.make(cfg.task)
 
 
-def test_same_key_same_result_and_vmap_over_keys():
+def test_same_key_same_result_and_vmap_over_keys(tiny, assert_same):
     cfg = tiny()
     keys = jax.random.split(jax.random.PRNGKey(3), 3)
     s1, m1 = run_mqd(keys[1], cfg)
@@ -65,7 +50,7 @@ def test_same_key_same_result_and_vmap_over_keys():
         assert_same(a, b[1])
 
 
-def test_traced_params_match_static_config_and_vmap():
+def test_traced_params_match_static_config_and_vmap(tiny, assert_same):
     cfg = tiny()
     other = dataclasses.replace(cfg, iso_sigma=0.1, t_dist=0.015)
     _, want = run_mqd(jax.random.PRNGKey(0), other)
@@ -75,7 +60,7 @@ def test_traced_params_match_static_config_and_vmap():
         assert_same(got[key][1], want[key])
 
 
-def test_full_repertoire_counts_dropped_niches_and_keeps_replacing():
+def test_full_repertoire_counts_dropped_niches_and_keeps_replacing(tiny):
     cfg = tiny(capacity=20, population_size=16, max_generations=10)
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     assert int(state.repertoire.count) == 20

@@ -9,8 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-import envs
-from mqd_jax import Config, cli, results
+from mqd_jax import Config, cli, registry, results
 from mqd_jax.stats import mann_whitney
 from mqd_jax.sweep import run_batch, seed_keys, threshold_grid
 
@@ -126,7 +125,7 @@ def test_mqd_adapt_adapts_the_saved_repertoires(swept):
     found = json.loads((out / "adaptation.json").read_text())["obstacle2d"]["methods"]
     # "nearest" is the distance from each goal to its nearest skill: brute force over the saved repertoires.
     rep = np.load(out / "obstacle2d_mqd.npz")
-    task = envs.make("obstacle2d")
+    task = registry.make("obstacle2d")
     from mqd_jax.adaptation import reachable_goals
 
     for i, count in enumerate(rep["count"]):
@@ -158,9 +157,9 @@ def test_adapt_and_plot_refuse_folders_without_results(tmp_path, capsys):
 
 
 def test_layouts_come_from_the_tasks():
-    obstacles = [r for r in envs.make("obstacle2d").layout() if r.label == "obstacle"]
-    assert [(*r.low, *r.high) for r in obstacles] == list(envs.make("obstacle2d").obstacles)
-    shelves = {r.label: (r.low, r.high) for r in envs.make("place").layout() if r.label.startswith("shelf")}
+    obstacles = [r for r in registry.make("obstacle2d").layout() if r.label == "obstacle"]
+    assert [(*r.low, *r.high) for r in obstacles] == list(registry.make("obstacle2d").obstacles)
+    shelves = {r.label: (r.low, r.high) for r in registry.make("place").layout() if r.label.startswith("shelf")}
     # place.xml: shelf_low at (0.5, 0.15), half-size 0.1, top 8 cm; shelf_high at (0.7, -0.15), top 15 cm.
     np.testing.assert_allclose(shelves["shelf low (top 8 cm)"], [(0.4, 0.05), (0.6, 0.25)], atol=1e-9)
     np.testing.assert_allclose(shelves["shelf high (top 15 cm)"], [(0.6, -0.25), (0.8, -0.05)], atol=1e-9)

@@ -18,51 +18,39 @@ from mqd_jax import Config, adapt, checkpoint, cli, diagnostics, folders, result
 from mqd_jax.config import check_params
 from mqd_jax.sweep import run_batch, seed_keys
 
-TINY = ["--generations", "3", "--population", "8", "--capacity", "64"]
-TINY_MQD = [*TINY, "--warmup-samples", "8", "--num-batches", "2"]
-
 
 def digest(folder):
     """{file name: SHA-256} of every file in `folder` (to show that nothing changed)."""
     return {f: hashlib.sha256((folder / f).read_bytes()).hexdigest() for f in sorted(os.listdir(folder))}
 
 
-def refused(argv, capsys, match):
-    """Runs `mqd argv`, which must exit with a usage error whose message contains `match`."""
-    with pytest.raises(SystemExit) as e:
-        cli.main(argv)
-    assert e.value.code == 2
-    err = capsys.readouterr().err
-    assert match in err, err
-    return err
-
-
 # Case 1: a run folder belongs to one config and seed.
 
-def test_run_folder_refuses_another_config_and_keeps_the_first_run(tmp_path, capsys):
+def test_run_folder_refuses_another_config_and_keeps_the_first_run(tmp_path, capsys, refused, tiny_mqd_flags,
+                                                                   tiny_flags):
     out = str(tmp_path)
-    cli.main(["run", *TINY_MQD, "--algorithm", "mqd", "--out", out])
+    cli.main(["run", *tiny_mqd_flags, "--algorithm", "mqd", "--out", out])
     before = digest(tmp_path)
-    err = refused(["run", *TINY, "--generations", "2", "--algorithm", "random", "--out", out], capsys,
+    err = refused(["run", *tiny_flags, "--generations", "2", "--algorithm", "random", "--out", out],
                   "it holds results of another run")
     assert "algorithm: saved 'mqd', now 'random'" in err and "max_generations: saved 3, now 2" in err
     assert "usage: mqd run" in err  # the subcommand's usage, not the top-level one
     assert digest(tmp_path) == before
-    refused(["run", *TINY_MQD, "--algorithm", "mqd", "--seed", "1", "--out", out], capsys, "seed: saved 0, now 1")
+    refused(["run", *tiny_mqd_flags, "--algorithm", "mqd", "--seed", "1", "--out", out], "seed: saved 0, now 1")
     # The first run is still whole: it resumes (already complete: nothing to run).
-    cli.main(["run", *TINY_MQD, "--algorithm", "mqd", "--out", out, "--resume"])
+    cli.main(["run", *tiny_mqd_flags, "--algorithm", "mqd", "--out", out, "--resume"])
     assert json.loads((tmp_path / "metrics.json").read_text())["config"]["algorithm"] == "mqd"
     # --overwrite is the way out.
-    cli.main(["run", *TINY, "--generations", "2", "--algorithm", "random", "--out", out, "--overwrite"])
+    cli.main(["run", *tiny_flags, "--generations", "2", "--algorithm", "random", "--out", out, "--overwrite"])
     assert "--overwrite: removed" in capsys.readouterr().out
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["config"] == dataclasses.asdict(Config(algorithm="random", max_generations=2, population_size=8,
-                                                        capacity=64))
+    assert saved["config"] == Config(algorithm="random", max_generations=2, population_size=8,
+                                     capacity=64).to_dict()
 
 
-def test_every_run_file_records_config_seed_versions_and_revision(tmp_path):
-    cli.main(["run", *TINY, "--seed", "7", "--out", str(tmp_path)])
-    cfg = dataclasses.asdict(Config(max_generations=3, population_size=8, capacity=64))
+def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny_flags):
+    cli.main(["run", *tiny_flags, "--seed", "7", "--out", str(tmp_path)])
+    cfg = Config(max_generations=3, population_size=8, capacity=64).to_dict()
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["config"] == cfg and saved["seed"] == 7
     assert saved["key"] == np.asarray(jax.random.PRNGKey(7)).tolist()
@@ -78,24 +66,26 @@ def test_every_run_file_records_config_seed_versions_and_revision(tmp_path):
     assert manifest["kind"] == "run" and manifest["identity"] == {"config": cfg, "seed": 7}
 
 
-def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silently(tmp_path, capsys):
+def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silently(tmp_path, capsys, refused,
+                                                                                 tiny_flags):
     (tmp_path / "metrics.json").write_text("{}")
-    refused(["run", *TINY, "--out", str(tmp_path)], capsys, "results without a manifest (metrics.json")
+    refused(["run", *tiny_flags, "--out", str(tmp_path)], "results without a manifest (metrics.json")
     assert (tmp_path / "metrics.json").read_text() == "{}"
 
 
 # Case 2: a sweep folder never mixes configs, and derived files follow their inputs.
 
 def sweep(out, *flags):
-    cli.main(["sweep", "--tasks", "obstacle2d", *TINY, "--out", str(out), *flags])
+    cli.main(["sweep", "--tasks", "obstacle2d", "--generations", "3", "--population", "8", "--capacity", "64",
+              "--out", str(out), *flags])
 
 
-def test_sweep_refuses_a_batch_of_another_config_before_running_anything(tmp_path, capsys):
+def test_sweep_refuses_a_batch_of_another_config_before_running_anything(tmp_path, capsys, refused, tiny_flags):
     sweep(tmp_path, "--algorithms", "qd", "random", "--seeds", "3")
     before = digest(tmp_path)
     capsys.readouterr()
-    err = refused(["sweep", "--tasks", "obstacle2d", "--algorithms", "random", "--seeds", "2", *TINY,
-                   "--generations", "2", "--out", str(tmp_path)], capsys, "refused")
+    err = refused(["sweep", "--tasks", "obstacle2d", "--algorithms", "random", "--seeds", "2", *tiny_flags,
+                   "--generations", "2", "--out", str(tmp_path)], "refused")
     assert "obstacle2d_qd differs (max_generations: saved 3, now 2, 3 other seed keys, now 2)" in err
     assert "generation" not in capsys.readouterr().out and digest(tmp_path) == before
     # With --overwrite, both clashing batches go: the folder holds only comparable runs.
@@ -157,13 +147,13 @@ HOLD_LOCK = textwrap.dedent("""
 """)
 
 
-def test_a_second_writer_is_refused_and_a_killed_writer_leaves_no_lock(tmp_path, capsys):
+def test_a_second_writer_is_refused_and_a_killed_writer_leaves_no_lock(tmp_path, capsys, refused, tiny_flags):
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(tmp_path)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
-        refused(["run", *TINY, "--out", str(tmp_path)], capsys,
+        refused(["run", *tiny_flags, "--out", str(tmp_path)],
                 f"is being written by another mqd process (pid {holder.pid})")
-        refused(["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", *TINY, "--out", str(tmp_path)], capsys,
+        refused(["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", *tiny_flags, "--out", str(tmp_path)],
                 "another mqd process")
     finally:
         holder.send_signal(signal.SIGKILL)
@@ -230,12 +220,8 @@ def test_a_checkpoint_altered_in_place_is_refused(tmp_path):
 def test_unreliable_runs_warn_once_with_counts(changes, match):
     import plugin_tasks
 
-    import envs
-
-    name = "trust_" + "_".join(changes)
-    if name not in envs.registered_tasks():
-        envs.register(name, lambda: plugin_tasks.make_reach(**changes))
-    cfg = Config(task=name, algorithm="mqd", max_generations=3, population_size=8, capacity=64, warmup_samples=8,
+    cfg = Config(task=plugin_tasks.make_reach(**changes), algorithm="mqd", max_generations=3, population_size=8,
+                 capacity=64, warmup_samples=8,
                  num_batches=2)
     with pytest.warns(diagnostics.RunWarning, match=match) as caught:
         _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)

@@ -5,8 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
-from mqd_jax import Config, Task, model, run_mqd
+from mqd_jax import Config, Task, model, registry, run_mqd
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -21,29 +20,27 @@ class Reach(Task):
         return tip, -jnp.abs(actions).sum(1), jnp.ones(actions.shape[0], bool)
 
 
-def test_registered_user_task_runs_and_stores_true_behaviors():
-    envs.register("reach_test", lambda: Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0)))
+def test_registered_user_task_runs_and_stores_true_behaviors(registered):
+    registered("reach_test", lambda: Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0)))
     cfg = Config(task="reach_test", max_generations=10, population_size=16, capacity=256)
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     n = int(state.repertoire.count)
     assert n > 16 and float(m["coverage"][-1]) > float(m["coverage"][0])
     rep = state.repertoire
-    b, q, _ = envs.make("reach_test").evaluate(rep.actions[:n], None)
+    b, q, _ = registry.make("reach_test").evaluate(rep.actions[:n], None)
     np.testing.assert_allclose(rep.behaviors[:n], b, atol=1e-6)
     np.testing.assert_allclose(rep.qualities[:n], q, atol=1e-6)
     with pytest.raises(ValueError, match="already registered"):
-        envs.register("reach_test", lambda: None)
+        registry.register("reach_test", lambda: None)
 
 
 def test_mqd_on_a_user_task_learns_its_quality_range():
-    if "reach_mqd_test" not in envs.registered_tasks():
-        envs.register("reach_mqd_test", lambda: Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0)))
-    task = envs.make("reach_mqd_test")
-    cfg = Config(task="reach_mqd_test", algorithm="mqd", max_generations=12, population_size=32, capacity=512,
+    task = Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0))
+    cfg = Config(task=task, algorithm="mqd", max_generations=12, population_size=32, capacity=512,
                  warmup_samples=128, learning_rate=1e-2, num_batches=100)
     state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (256, 2), minval=-3.14, maxval=3.14)
-    _, pred_q = model.predict(state.model, actions, cfg, task)
+    _, pred_q = model.predict(state.emitter.model, actions, task)
     _, q, _ = task.evaluate(actions, None)
     # tanh outputs map onto quality_range, and the model has learnt where in it qualities lie.
     assert np.all((np.asarray(pred_q) >= -6.3) & (np.asarray(pred_q) <= 0.0))

@@ -1,0 +1,137 @@
+"""Emitters: the parts of a search that propose candidates and learn from their rollouts.
+
+An emitter (like optax's `GradientTransformation` or QDax's `Emitter`) is a
+frozen dataclass of static settings with three pure functions over a state of
+its own (any pytree, e.g. a `flax.struct` dataclass):
+
+    state = emitter.init(key, task)
+    proposal = emitter.propose(key, state, repertoire, task, params, num)
+    state, metrics = emitter.update(key, state, proposal, evaluated, repertoire, task, params)
+
+`propose` gives `num` candidate actions and which of them to roll out;
+`update` sees their results (`Evaluated`) and the repertoire after they were
+inserted, and returns the scalars named by `metrics()` (they join a run's
+per-generation metrics). All three are traced inside one jitted generation:
+they must be jittable and vmappable (no Python branching on array values).
+Emitters compose by wrapping: `mqd_jax.model_emitter.ModelEmitter(IsoLine())`
+filters or ranks what the inner emitter proposes.
+
+This module holds the protocol and the two emitters of the paper's baselines:
+`Uniform` (RANDOM) and `IsoLine` (QD).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from mqd_jax import selection, variation
+from mqd_jax.repertoire import Repertoire
+from mqd_jax.task import Task
+
+if TYPE_CHECKING:
+    from mqd_jax.config import Params
+
+
+@struct.dataclass
+class Proposal:
+    """What `Emitter.propose` returns (num candidates).
+
+    Attributes:
+      actions: [num, n] candidate actions inside the task's action box.
+      rollout: [num] bool, the candidates worth a rollout; the others are not
+        evaluated (a backend that can skip rollouts skips them) and not inserted.
+      info: any pytree the emitter hands to its own `update` (e.g. the model's
+        predictions). A wrapper that keeps some rows of its inner emitter's
+        proposal keeps the same rows of every leaf whose leading axis is num.
+    """
+
+    actions: jax.Array
+    rollout: jax.Array
+    info: Any = ()
+
+
+@struct.dataclass
+class Evaluated:
+    """A proposal's outcome, as `Emitter.update` sees it (num candidates).
+
+    Attributes:
+      behaviors: [num, d], qualities: [num]: the rollouts' results; zeros
+        where `usable` is False.
+      usable: [num] bool, rolled out and returned a valid, finite result.
+      status: [num] int32 `repertoire.AddStatus` of each candidate's insertion.
+    """
+
+    behaviors: jax.Array
+    qualities: jax.Array
+    usable: jax.Array
+    status: jax.Array
+
+
+def action_bounds(task: Task) -> tuple[jax.Array, jax.Array]:
+    """The task's action box as float32 arrays low [n], high [n]."""
+    return jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Emitter:
+    """Base class of emitters: subclass it as a frozen dataclass and implement `propose`.
+
+    The defaults: no state, an `update` that changes nothing and no metrics.
+    """
+
+    def init(self, key: jax.Array, task: Task) -> Any:
+        """The emitter's state before the first generation (a pytree; default: none)."""
+        del key, task
+        return ()
+
+    def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
+                num: int) -> Proposal:
+        """`num` candidates from the repertoire as it stands (see `Proposal`)."""
+        raise NotImplementedError
+
+    def update(self, key: jax.Array, state: Any, proposal: Proposal, evaluated: Evaluated, repertoire: Repertoire,
+               task: Task, params: Params) -> tuple[Any, dict[str, jax.Array]]:
+        """The state after the proposal's rollouts, and this generation's metrics (scalars named in `metrics`)."""
+        del key, proposal, evaluated, repertoire, task, params
+        return state, {}
+
+    def metrics(self) -> dict[str, Any]:
+        """{name: dtype} of the scalars `update` returns (default: none)."""
+        return {}
+
+
+def _uniform_key(key: jax.Array) -> jax.Array:
+    # The first of IsoLine's three subkeys: RANDOM's candidates equal QD's first generation for the same key.
+    return jax.random.split(key, 3)[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class Uniform(Emitter):
+    """RANDOM: actions uniform in the task's action box, all rolled out."""
+
+    def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
+                num: int) -> Proposal:
+        return Proposal(variation.uniform(_uniform_key(key), num, *action_bounds(task)), jnp.ones(num, bool))
+
+
+@dataclasses.dataclass(frozen=True)
+class IsoLine(Emitter):
+    """QD: parents drawn in proportion to novelty, iso+line children (`params.iso_sigma`, `params.line_sigma`).
+
+    Uniform actions while the repertoire is empty; every candidate is rolled out.
+    """
+
+    def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
+                num: int) -> Proposal:
+        low, high = action_bounds(task)
+        _, k_parents, k_vary = jax.random.split(key, 3)
+        fresh = variation.uniform(_uniform_key(key), num, low, high)
+        parents = selection.sample_parents(k_parents, repertoire.novelty, repertoire.valid, 2 * num)
+        x = repertoire.actions[parents].reshape(2, num, -1)
+        children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma, params.line_sigma, low, high)
+        return Proposal(jnp.where(repertoire.count > 0, children, fresh), jnp.ones(num, bool))

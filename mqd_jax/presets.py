@@ -1,0 +1,35 @@
+"""The named algorithms of the paper, as compositions of emitters.
+
+    "random" -> Uniform()
+    "qd"     -> IsoLine()
+    "mqd"    -> ModelEmitter(IsoLine(), Threshold())         (the paper's filter)
+                ModelEmitter(IsoLine(), Budgeted(pool_factor)) (cfg.budgeted)
+
+with the model's settings from the config (Table II). A config whose
+`algorithm` is an emitter runs that emitter.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from mqd_jax.acquisition import Budgeted, Threshold
+from mqd_jax.config import Config
+from mqd_jax.emitters import Emitter, IsoLine, Uniform
+from mqd_jax.model_emitter import ModelEmitter
+
+
+def _mqd(cfg: Config) -> ModelEmitter:
+    return ModelEmitter(IsoLine(), Budgeted(cfg.pool_factor) if cfg.budgeted else Threshold(), k=cfg.k,
+                        hidden_size=cfg.hidden_size, batch_size=cfg.batch_size, num_batches=cfg.num_batches,
+                        warmup_samples=cfg.warmup_samples)
+
+
+# Every name in `config.PRESETS`.
+_BUILDERS: dict[str, Callable[[Config], Emitter]] = {"random": lambda cfg: Uniform(), "qd": lambda cfg: IsoLine(),
+                                                     "mqd": _mqd}
+
+
+def emitter(cfg: Config) -> Emitter:
+    """The emitter a run of `cfg` uses: the preset `cfg.algorithm` names, or `cfg.algorithm` itself."""
+    return cfg.algorithm if isinstance(cfg.algorithm, Emitter) else _BUILDERS[cfg.algorithm](cfg)

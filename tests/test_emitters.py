@@ -1,0 +1,107 @@
+"""Emitters compose without editing the library; the presets are compositions; the core never imports the tasks."""
+
+import dataclasses
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mqd_jax import Budgeted, Config, Emitter, IsoLine, ModelEmitter, Proposal, Threshold, Uniform, presets, run_mqd
+from mqd_jax.run import METRICS
+
+
+def test_importing_mqd_jax_and_its_modules_leaves_the_tasks_out():
+    code = ("import sys, mqd_jax, mqd_jax.cli, mqd_jax.results, mqd_jax.plots, mqd_jax.sweep, mqd_jax.checkpoint; "
+            "print(sorted(m for m in sys.modules if m == 'envs' or m.startswith('envs.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_presets_are_these_compositions():
+    cfg = Config(algorithm="mqd", k=4, hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5,
+                 max_generations=2)
+    assert presets.emitter(dataclasses.replace(cfg, algorithm="random")) == Uniform()
+    assert presets.emitter(dataclasses.replace(cfg, algorithm="qd")) == IsoLine()
+    model_settings = dict(k=4, hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5)
+    assert presets.emitter(cfg) == ModelEmitter(IsoLine(), Threshold(), **model_settings)
+    assert presets.emitter(dataclasses.replace(cfg, budgeted=True, pool_factor=3)) == ModelEmitter(
+        IsoLine(), Budgeted(3), **model_settings)
+    emitter = ModelEmitter(Uniform(), Budgeted(2))
+    assert presets.emitter(dataclasses.replace(cfg, algorithm=emitter)) is emitter
+
+
+def test_a_composed_model_emitter_runs_bit_identical_to_the_mqd_preset(tiny):
+    preset = tiny(algorithm="mqd", warmup_samples=48, num_batches=10, max_generations=6, t_nov=0.1, t_qua=0.1)
+    composed = dataclasses.replace(preset, algorithm=ModelEmitter(
+        IsoLine(), Threshold(), k=preset.k, hidden_size=preset.hidden_size, batch_size=preset.batch_size,
+        num_batches=preset.num_batches, warmup_samples=preset.warmup_samples))
+    (s1, m1), (s2, m2) = (run_mqd(jax.random.PRNGKey(1), c) for c in (preset, composed))
+    assert set(m1) == set(m2) == set(METRICS) | {"discarded", "model_loss", "prediction_error"}
+    for name in m1:
+        np.testing.assert_array_equal(m1[name], m2[name], err_msg=name)
+    for a, b in zip(jax.tree.leaves(s1), jax.tree.leaves(s2), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert m1["discarded"][-1] > 0  # the model filtered after warm-up (thresholds above the defaults)
+
+
+def test_qd_and_random_carry_no_model_and_report_only_the_engines_metrics(tiny):
+    state, metrics = run_mqd(jax.random.PRNGKey(0), tiny(algorithm="random", max_generations=2))
+    assert state.emitter == () and set(metrics) == set(METRICS)
+
+
+def test_acquisition_rules_respect_the_inner_emitters_rollout_mask_by_hand():
+    novelty = jnp.array([0.5, 0.01, 0.9, 0.02, 0.3, 0.0])
+    improvement = jnp.array([0.0, 0.5, 0.0, -0.1, 0.0, 0.2])
+    wanted = jnp.array([True, True, False, True, True, True])
+    params = Config().params().replace(t_nov=jnp.float32(0.1), t_qua=jnp.float32(0.1))
+    rows, rollout, discarded = Threshold().select(novelty, improvement, wanted, jnp.bool_(False), params, 6)
+    # Passing: 0 and 4 by novelty, 1 and 5 by improvement; 2 passes too but the inner emitter did not want it.
+    np.testing.assert_array_equal(rows, np.arange(6))
+    np.testing.assert_array_equal(rollout, [True, True, False, False, True, True])
+    assert int(discarded) == 1  # 3: wanted, turned down
+    rows, rollout, _ = Threshold().select(novelty, improvement, wanted, jnp.bool_(True), params, 6)
+    np.testing.assert_array_equal(rollout, wanted)  # warm-up: the inner emitter's choice
+    rows, rollout, discarded = Budgeted(2).select(novelty, improvement, wanted, jnp.bool_(False), params, 3)
+    # Wanted first; of those, novel (> 0.1) by novelty: 0 (0.5), 4 (0.3); then by improvement: 1 (0.5).
+    np.testing.assert_array_equal(rows, [0, 4, 1])
+    assert bool(rollout.all()) and int(discarded) == 3
+
+
+@dataclasses.dataclass(frozen=True)
+class _WrongShape(Emitter):
+    def propose(self, key, state, repertoire, task, params, num):
+        return Proposal(jnp.zeros((num + 1, task.action_dim)), jnp.ones(num + 1, bool))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Undeclared(Emitter):
+    def propose(self, key, state, repertoire, task, params, num):
+        return Uniform().propose(key, state, repertoire, task, params, num)
+
+    def update(self, key, state, proposal, evaluated, repertoire, task, params):
+        return state, {"surprise": jnp.float32(1.0)}
+
+
+@pytest.mark.parametrize(("emitter", "match"), [
+    (_WrongShape(), r"propose returned actions \(17, 9\).*expected \(16, 9\) and \(16,\) bool"),
+    (_Undeclared(), r"update returned the metrics \['surprise'\], but its metrics\(\) declares \[\]"),
+])
+def test_an_emitter_that_breaks_the_protocol_is_named_while_tracing(tiny, emitter, match):
+    with pytest.raises(ValueError, match=match):
+        jax.eval_shape(lambda k: run_mqd(k, tiny(algorithm=emitter)), jax.random.PRNGKey(0))
+
+
+def test_bad_compositions_are_refused_at_construction():
+    with pytest.raises(ValueError, match=r"ModelEmitter.inner=.* expected an Emitter"):
+        ModelEmitter("qd")
+    with pytest.raises(ValueError, match=r"ModelEmitter\.hidden_size=0"):
+        ModelEmitter(IsoLine(), hidden_size=0)
+    with pytest.raises(ValueError, match=r"metrics \['discarded', 'model_loss', 'prediction_error'\] clash"):
+        ModelEmitter(ModelEmitter(IsoLine()))
+    with pytest.raises(ValueError, match=r"Budgeted\.pool_factor=0"):
+        Budgeted(0)
+    with pytest.raises(ValueError, match=r"Config\.algorithm='cmaes' is invalid: expected an Emitter or one of"):
+        Config(algorithm="cmaes")
