@@ -108,3 +108,12 @@ def registered():
     for name in names:
         registry._FACTORIES.pop(name)
     registry._make.cache_clear()
+
+
+@pytest.fixture
+def entry_points_rescanned():
+    """The installed packages' task entry points are read afresh in this test, and again after it."""
+    registry._entry_points.cache_clear()
+    yield
+    registry._entry_points.cache_clear()
+    registry._make.cache_clear()

@@ -111,13 +111,12 @@ def test_a_plugin_task_runs_from_the_command_line(tmp_path, capsys, refused, tin
             "task 'os:getcwd': its factory returned a str, not a mqd_jax.Task")
 
 
-def test_a_task_from_an_installed_packages_entry_point(tmp_path, monkeypatch):
+def test_a_task_from_an_installed_packages_entry_point(tmp_path, monkeypatch, entry_points_rescanned):
     info = tmp_path / "reach_plugin-1.0.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: reach-plugin\nVersion: 1.0\n")
     (info / "entry_points.txt").write_text(f"[{registry.ENTRY_POINT_GROUP}]\nentry_reach = plugin_tasks:make_reach\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    registry._entry_points.cache_clear()
     assert "entry_reach" in registry.registered_tasks()
     state, _ = run_mqd(jax.random.PRNGKey(0), Config(task="entry_reach", max_generations=2, population_size=8,
                                                      capacity=64))
