@@ -226,29 +226,65 @@ def start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
     return data
 
 
-class MjxRollout:
-    """MJX rollouts of a batch of control sequences from the scene's start state (traced; same controls)."""
+# MuJoCo Warp's buffers: contacts per world (a cube on a table touches at up to 8 points; fingers and shelves
+# add some) and constraint rows per world (contacts with friction, joint limits, the weld).
+WARP_CONTACTS_PER_WORLD = 64
+WARP_CONSTRAINTS_PER_WORLD = 512
 
-    def __init__(self, scene: str, q_start: np.ndarray) -> None:
+
+class MjxRollout:
+    """MJX rollouts of a batch of control sequences from the scene's start state (traced; same controls).
+
+    `impl`: "jax" (MJX's JAX implementation: any JAX device) or "warp" (MuJoCo
+    Warp through MJX: NVIDIA GPUs, and Warp's CPU device; needs the `gpu` extra).
+    """
+
+    def __init__(self, scene: str, q_start: np.ndarray, impl: str = "jax") -> None:
         model = load(scene)
         data = start_data(model, q_start)
-        self.nu = model.nu
-        self.model = mjx.put_model(model)
-        self.data = mjx.put_data(model, data)
+        self.nu, self.impl = model.nu, impl
+        self.model = mjx.put_model(model, impl=impl)
+        if impl == "warp":
+            self._mj_model, self._start = model, data
+            # One flat batch of worlds however the rollouts are vmapped (seeds x population): MuJoCo Warp's
+            # contact buffer is shared by all worlds of a call, so it is sized for the whole batch.
+            self._rollouts = jax.custom_batching.custom_vmap(self._rollouts_flat)
+            self._rollouts.def_vmap(self._rollouts_vmap)
+        else:
+            self.data = mjx.put_data(model, data)
         self.sensors_start = np.array(data.sensordata, np.float32)
 
     def __call__(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """ctrl [B, H, nu (+ neq)] -> final qpos [B, nq], sensors [B, H, ns], finite [B]; every row runs."""
         del mask
+        if self.impl == "warp":
+            return self._rollouts(ctrl)
+        return jax.vmap(lambda c: self._one(self.data, c))(ctrl)
 
-        def one(controls: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-            def step(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, jax.Array]:
-                if u.shape[0] > self.nu:
-                    d = d.replace(eq_active=u[self.nu:] > 0.5)
-                d = mjx.step(self.model, d.replace(ctrl=u[:self.nu]))
-                return d, d.sensordata
+    def _one(self, data: mjx.Data, controls: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """One rollout of controls [H, nu (+ neq)] from `data`."""
+        def step(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, jax.Array]:
+            if u.shape[0] > self.nu:
+                d = d.replace(eq_active=u[self.nu:] > 0.5)
+            d = mjx.step(self.model, d.replace(ctrl=u[:self.nu]))
+            return d, d.sensordata
 
-            final, sensors = jax.lax.scan(step, self.data, controls)
-            return final.qpos.astype(jnp.float32), sensors.astype(jnp.float32), jnp.isfinite(final.qpos).all()
+        final, sensors = jax.lax.scan(step, data, controls)
+        return final.qpos.astype(jnp.float32), sensors.astype(jnp.float32), jnp.isfinite(final.qpos).all()
 
-        return jax.vmap(one)(ctrl)
+    def _rollouts_flat(self, ctrl: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """MuJoCo Warp: ctrl [N, H, u] as one batch of N worlds, with contact and constraint room for all N."""
+        worlds = ctrl.shape[0]
+        data = mjx.make_data(self._mj_model, impl="warp", naconmax=WARP_CONTACTS_PER_WORLD * worlds,
+                             njmax=WARP_CONSTRAINTS_PER_WORLD).replace(
+            qpos=jnp.asarray(self._start.qpos, jnp.float32), qvel=jnp.asarray(self._start.qvel, jnp.float32),
+            ctrl=jnp.asarray(self._start.ctrl, jnp.float32))
+        return jax.vmap(lambda c: self._one(data, c))(ctrl)
+
+    def _rollouts_vmap(self, axis_size: int, in_batched: list[bool],
+                       ctrl: jax.Array) -> tuple[tuple[jax.Array, ...], tuple[bool, ...]]:
+        """Under an outer vmap (seeds): the [S, N] rollouts as one flat batch of S x N worlds."""
+        if not in_batched[0]:
+            ctrl = jnp.broadcast_to(ctrl, (axis_size, *ctrl.shape))
+        out = self._rollouts(ctrl.reshape(-1, *ctrl.shape[2:]))
+        return tuple(x.reshape(axis_size, -1, *x.shape[1:]) for x in out), (True, True, True)

@@ -7,14 +7,17 @@ rollouts give (`outcome`). Every rollout starts from the scene's start state
 through the via-points, holds the last one for `settle` steps, and can switch
 the scene's equality constraints off at a given step (Place's release).
 
-`backend`: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX, accelerators) or "auto" (the
-default: "mujoco" when `jax.default_backend()` is "cpu", else "mjx");
-`envs.make(name, backend=...)` and `Config.physics_backend` set it.
+`backend`: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX's JAX implementation, any
+accelerator), "warp" (MuJoCo Warp through MJX, NVIDIA GPUs; the `gpu` extra)
+or "auto" (the default: "mujoco" when `jax.default_backend()` is "cpu", else
+"warp" on a CUDA GPU with MuJoCo Warp installed, else "mjx");
+`mqd_jax.registry.make(name, backend=...)` sets it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +26,7 @@ import mujoco
 from envs import kuka
 from mqd_jax.task import Region, Task
 
-BACKENDS = ("auto", "mujoco", "mjx")
+BACKENDS = ("auto", "mujoco", "mjx", "warp")
 SETTLE = 100
 # The paper's Table I: final coverage (mean, std) per scene and preset.
 PAPER_COVERAGE = {
@@ -31,6 +34,18 @@ PAPER_COVERAGE = {
     "push_sphere": {"mqd": (0.685, 0.0185), "qd": (0.560, 0.009), "random": (0.171, 0.004)},
     "place": {"mqd": (0.639, 0.034), "qd": (0.524, 0.009), "random": (0.349, 0.001)},
 }
+
+
+def warp_installed() -> bool:
+    """Whether MuJoCo Warp (and Warp) can be imported."""
+    return importlib.util.find_spec("mujoco_warp") is not None and importlib.util.find_spec("warp") is not None
+
+
+def auto_backend() -> str:
+    """"mujoco" on a CPU, "warp" on a CUDA GPU when MuJoCo Warp is installed, else "mjx"."""
+    if jax.default_backend() == "cpu":
+        return "mujoco"
+    return "warp" if jax.default_backend() == "gpu" and warp_installed() else "mjx"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -45,15 +60,16 @@ class Manipulation(Task):
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise ValueError(f"backend={self.backend!r} is invalid: expected one of {BACKENDS}")
-        backend = self.backend
-        if backend == "auto":
-            backend = "mujoco" if jax.default_backend() == "cpu" else "mjx"
+        backend = auto_backend() if self.backend == "auto" else self.backend
+        if backend == "warp" and not warp_installed():
+            raise ValueError("backend='warp' needs MuJoCo Warp: pip install -e .[gpu]")
         q_start = kuka.start_pose(self.scene)
         object.__setattr__(self, "physics", backend)
         object.__setattr__(self, "_kinematics", kuka.Kinematics(kuka.load(self.scene)))
         object.__setattr__(self, "_q_start", q_start)
-        rollout = kuka.CRollout if backend == "mujoco" else kuka.MjxRollout
-        object.__setattr__(self, "_rollout", rollout(self.scene, q_start))
+        rollout = (kuka.CRollout(self.scene, q_start) if backend == "mujoco"
+                   else kuka.MjxRollout(self.scene, q_start, impl="warp" if backend == "warp" else "jax"))
+        object.__setattr__(self, "_rollout", rollout)
 
     def via_points(self, actions: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """actions [B, n] -> targets [B, V, 3], gammas [B, V], durations [B, V] (steps)."""
@@ -101,7 +117,7 @@ class Manipulation(Task):
                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         targets, gammas, durations = self.via_points(actions)
         ctrl = self._rollout_controls(targets, gammas, durations)
-        if self.physics == "mjx":
+        if self.physics != "mujoco":
             qpos, sensors, finite = self._rollout(ctrl, mask)
         else:
             model = kuka.load(self.scene)

@@ -20,24 +20,20 @@ import sys
 
 import report
 
+# Runs in the tree under test (PYTHONPATH), with this folder's timing function.
 _TIMING = """
-import statistics, time, jax
-from mqd_jax import Config, run_mqd
-cfg = Config.paper_2d(task="obstacle2d", algorithm="{algorithm}", max_generations={generations})
-key = jax.random.PRNGKey(0)
-jax.block_until_ready(run_mqd(key, cfg))
-times = []
-for _ in range(3):
-    start = time.perf_counter()
-    jax.block_until_ready(run_mqd(key, cfg))
-    times.append(time.perf_counter() - start)
-print(statistics.median(times) / cfg.max_generations * 1e3)
+import sys
+sys.path.insert(0, {experiments!r})
+from accelerator_timings import ms_per_generation
+from mqd_jax import Config
+print(ms_per_generation(Config.paper_2d(task="obstacle2d", algorithm="{algorithm}", max_generations={generations})))
 """
 
 
 def _ms_per_generation(tree: str, algorithm: str, generations: int) -> float:
     env = {**os.environ, "PYTHONPATH": os.path.abspath(tree), "MQD_JAX_CACHE_DIR": "off"}
-    code = _TIMING.format(algorithm=algorithm, generations=generations)
+    code = _TIMING.format(experiments=os.path.dirname(os.path.abspath(__file__)), algorithm=algorithm,
+                          generations=generations)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     return float(out.stdout.split()[-1])
 

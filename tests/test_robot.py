@@ -83,24 +83,33 @@ def test_a_vmapped_run_makes_one_rollout_call_per_generation():
     assert calls == [(3, 8, task.horizon, 7)] * 2  # all seeds' rollouts in one call per generation
 
 
-def test_the_two_backends_agree_on_the_final_object_position():
+@pytest.mark.parametrize("backend", ["mjx", "warp"])
+def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend):
     # Untouched, and a straight push along +x. Measured: equal, and 4 mm apart (the contact solvers
     # differ: MJX in float32 with its own collision routines); a glancing sweep that knocks the cube
     # sideways diverged by 4 cm, so the check uses clean pushes. Short horizon: MJX compiles slowly on CPU.
-    from envs import push
+    # MuJoCo Warp runs on Warp's CPU device here (its kernels compile for about 90 s the first time).
+    from envs import manipulation, push
 
+    if backend == "warp" and not manipulation.warp_installed():
+        pytest.skip("MuJoCo Warp is not installed (pip install -e .[gpu])")
     actions = jnp.array([[0.45, 0.25, 0.0, 40, 0.5, 0.25, 0.0, 40],
                          [0.5, 0.0, 0.0, 30, 0.75, 0.0, 0.0, 50]], jnp.float32)
     out = {}
-    for backend in ("mujoco", "mjx"):
-        task = push.make("push_cube", 0.025, backend=backend, t_max=50, settle=50)
-        assert task.physics == backend
-        out[backend] = [np.asarray(x) for x in jax.jit(task.evaluate)(actions, None)]
-    (b_c, q_c, v_c), (b_x, q_x, v_x) = out["mujoco"], out["mjx"]
+    for name in ("mujoco", backend):
+        task = push.make("push_cube", 0.025, backend=name, t_max=50, settle=50)
+        assert task.physics == name
+        out[name] = [np.asarray(x) for x in jax.jit(task.evaluate)(actions, None)]
+    (b_c, q_c, v_c), (b_x, q_x, v_x) = out["mujoco"], out[backend]
     assert np.all(v_c) and np.all(v_x)
     assert b_c[1, 0] - kuka.TABLE_CENTRE[0] > 0.05  # the push moved the cube
     np.testing.assert_allclose(b_x, b_c, atol=0.01)
     np.testing.assert_allclose(q_x, q_c, atol=0.01)  # end-effector path lengths, metres
+    if backend == "warp":  # vmapped over seeds: one flat batch of worlds, the same rollouts
+        b_s, _, v_s = jax.jit(jax.vmap(lambda a: task.evaluate(a, None)))(jnp.stack([actions, actions[::-1]]))
+        np.testing.assert_allclose(b_s[0], b_x, atol=1e-5)
+        np.testing.assert_allclose(b_s[1], b_x[::-1], atol=1e-5)
+        assert np.all(v_s)
 
 
 def test_the_ik_jacobian_is_the_residuals_derivative():
@@ -137,3 +146,12 @@ def test_a_released_cube_comes_to_rest_on_the_surface_below():
     np.testing.assert_allclose(q, -(held[:, 2] - qpos[:, 9]), atol=1e-4)
     np.testing.assert_allclose(b, qpos[:, 7:9], atol=1e-6)
     assert place.VIA_POINTS == 5 and np.all(np.asarray(valid))
+
+
+def test_the_warp_backend_without_mujoco_warp_is_refused_with_the_extra_to_install(monkeypatch):
+    from envs import manipulation, push
+
+    monkeypatch.setattr(manipulation, "warp_installed", lambda: False)
+    with pytest.raises(ValueError, match=r"backend='warp' needs MuJoCo Warp: pip install -e \.\[gpu\]"):
+        push.make("push_cube", 0.025, backend="warp")
+    assert manipulation.auto_backend() == "mujoco"  # on a CPU

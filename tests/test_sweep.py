@@ -1,6 +1,7 @@
 import importlib.util
 import json
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -60,25 +61,53 @@ def test_bad_batches_are_refused():
         seed_keys(0)
 
 
-def test_the_run_axis_is_split_over_devices_and_padded(tmp_path):
+# One sharded batch of 3 runs; with arguments (coordinator address, process id) it is one of two processes.
+_BATCH = textwrap.dedent("""
+    import json, sys
+    import jax, numpy as np
+    if len(sys.argv) > 1:
+        jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2, process_id=int(sys.argv[2]))
+    from mqd_jax import Config
+    from mqd_jax.sweep import run_batch, seed_keys
+    states, m = run_batch(Config(max_generations=3, population_size=8, capacity=64, archive_capacity=64),
+                          seed_keys(3))
+    json.dump({"devices": jax.device_count(), "processes": jax.process_count(),
+               "shape": list(states.repertoire.count.shape), "coverage": m["coverage"].tolist()}, sys.stdout)
+""")
+
+
+def _cpu_env(devices):
+    return {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}", "JAX_PLATFORMS": "cpu"}
+
+
+def _batch_on(devices):
+    out = subprocess.run([sys.executable, "-c", _BATCH], env=_cpu_env(devices), capture_output=True, text=True,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_the_run_axis_is_split_over_devices_and_padded():
     """Two CPU devices (forced): 3 runs are padded to 4, laid out 2 per device, and agree with one device."""
-    script = textwrap.dedent("""
-        import json, sys
-        import jax, numpy as np
-        from mqd_jax import Config
-        from mqd_jax.sweep import run_batch, seed_keys
-        states, m = run_batch(Config(max_generations=3, population_size=8, capacity=64, archive_capacity=64),
-                              seed_keys(3))
-        json.dump({"devices": jax.device_count(), "shape": list(states.repertoire.count.shape),
-                   "coverage": m["coverage"].tolist()}, sys.stdout)
-    """)
-    got = {}
-    for count in (1, 2):
-        env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={count}", "JAX_PLATFORMS": "cpu"}
-        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
-        got[count] = json.loads(out.stdout.strip().splitlines()[-1])
-    assert got[2]["devices"] == 2 and got[2]["shape"] == [3]
-    np.testing.assert_allclose(got[2]["coverage"], got[1]["coverage"], atol=1e-6)
+    one, two = _batch_on(1), _batch_on(2)
+    assert two["devices"] == 2 and two["shape"] == [3]
+    np.testing.assert_allclose(two["coverage"], one["coverage"], atol=1e-6)
+
+
+def test_two_processes_with_jax_distributed_gather_the_single_process_result():
+    """Two local processes (jax.distributed, a local coordinator, one CPU device each) run one sharded batch;
+    both gather every run's metrics, equal to one process with two devices (the same layout)."""
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        address = f"localhost:{s.getsockname()[1]}"
+    procs = [subprocess.Popen([sys.executable, "-c", _BATCH, address, str(i)], env=_cpu_env(1),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err[-2000:] for _, err in outs]
+    got = [json.loads(out.strip().splitlines()[-1]) for out, _ in outs]
+    want = _batch_on(2)
+    for g in got:
+        assert (g["devices"], g["processes"], g["shape"]) == (2, 2, [3])
+        np.testing.assert_array_equal(g["coverage"], want["coverage"])
 
 
 @pytest.fixture(scope="module")
