@@ -92,3 +92,26 @@ def path_quality(shortest: Array, travelled: Array) -> Array:
     xp = xp_of(shortest, travelled)
     moved = travelled > 1e-9
     return xp.where(moved, xp.clip(shortest / xp.where(moved, travelled, 1.0), 0.0, 1.0), 1.0)
+
+
+def truncated(action: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """action [3 s] stopped after each of times [F] (time steps from the start): [F, 3 s].
+
+    Sub-action i occupies the time steps [i * MAX_DURATION, (i + 1) * MAX_DURATION)
+    (see `step_displacements`), so cutting its duration to the part of that
+    window before a time gives the position at that time.
+    """
+    sub = np.asarray(action, np.float32).reshape(-1, 3)
+    window = np.arange(len(sub), dtype=np.float32) * MAX_DURATION
+    out = np.broadcast_to(sub, (len(times), *sub.shape)).copy()
+    out[..., 2] = np.clip(np.asarray(times, np.float32)[:, None] - window, 0.0, sub[:, 2])
+    return out.reshape(len(times), -1)
+
+
+def frames(task: Any, action: np.ndarray, width: int, height: int, num: int = 40) -> np.ndarray:
+    """`Task.frames` of a 2D task: its behavior along the action, `num` frames, drawn over its layout."""
+    from mqd_jax import plots
+
+    end = len(np.asarray(action)) // 3 * MAX_DURATION
+    path, _, _ = task.evaluate(truncated(action, np.linspace(0.0, end, num)))
+    return plots.path_frames(task, np.asarray(path), width, height, type(task).__name__)

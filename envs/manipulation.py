@@ -22,6 +22,8 @@ import importlib.util
 import jax
 import jax.numpy as jnp
 import mujoco
+import numpy as np
+from mujoco import rollout
 
 from envs import kuka
 from mqd_jax.task import Region, Task
@@ -150,6 +152,28 @@ class Manipulation(Task):
         (cx, cy) = kuka.TABLE_CENTRE
         return (*parts, Region("via-point reach", kuka.REACH_LOW, kuka.REACH_HIGH, filled=False),
                 Region("object start", (cx - r, cy - r), (cx + r, cy + r), colour="tab:red"))
+
+    def frames(self, action: np.ndarray, width: int = 320, height: int = 240, every: int = 8) -> np.ndarray:
+        """The skill `action` [n] on C MuJoCo (whatever the backend), a frame every `every` steps, seen from the
+        front left with the headlight turned up. Needs an OpenGL context (MUJOCO_GL=egl offscreen)."""
+        model = kuka.load(self.scene)
+        c = self._rollout if isinstance(self._rollout, kuka.CRollout) else kuka.CRollout(self.scene, self._q_start)
+        ctrl = np.asarray(self.rollout_controls(jnp.asarray(action, jnp.float32)[None]), np.float64)
+        state, _ = rollout.rollout(c.model, c.datas[:1], c.initial_state[None], ctrl,
+                                   control_spec=int(c.control_spec))
+        model.vis.headlight.ambient[:] = 0.45
+        model.vis.headlight.diffuse[:] = 0.6
+        data = mujoco.MjData(model)
+        camera = mujoco.MjvCamera()
+        camera.lookat[:], camera.distance, camera.azimuth, camera.elevation = (0.6, 0.0, 0.1), 1.6, 150.0, -30.0
+        out = []
+        with mujoco.Renderer(model, height, width) as renderer:
+            for t in range(0, state.shape[1], every):
+                mujoco.mj_setState(model, data, state[0, t], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+                mujoco.mj_forward(model, data)
+                renderer.update_scene(data, camera)
+                out.append(renderer.render())
+        return np.stack(out)
 
     @property
     def paper_coverage(self) -> dict[str, tuple[float, float]]:

@@ -68,6 +68,10 @@ class Object2D(Task):
         lo, hi = OBJECT_RADIUS, 1 - OBJECT_RADIUS
         return np.all((points >= lo) & (points <= hi), axis=-1)
 
+    def frames(self, action: np.ndarray, width: int = 320, height: int = 320) -> np.ndarray:
+        """The behavior along the skill `action`, drawn over the layout (40 frames)."""
+        return arena2d.frames(self, action, width, height)
+
     def layout(self) -> tuple[Region, ...]:
         disk = lambda label, c, r, colour: Region(label, (c[0] - r, c[1] - r), (c[0] + r, c[1] + r),  # noqa: E731
                                                   "disk", colour=colour)

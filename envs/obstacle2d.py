@@ -112,6 +112,10 @@ class Obstacle2D(Task):
         inside = (boxes[:, 0] < x) & (x < boxes[:, 2]) & (boxes[:, 1] < y) & (y < boxes[:, 3])
         return ~inside.any(-1)
 
+    def frames(self, action: np.ndarray, width: int = 320, height: int = 320) -> np.ndarray:
+        """The behavior along the skill `action`, drawn over the layout (40 frames)."""
+        return arena2d.frames(self, action, width, height)
+
     def layout(self) -> tuple[Region, ...]:
         r = AGENT_MARK
         start = Region("agent start", (self.start[0] - r, self.start[1] - r), (self.start[0] + r, self.start[1] + r),

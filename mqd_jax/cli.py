@@ -4,6 +4,7 @@
     mqd sweep [--tasks ...] [--algorithms mqd qd random] [--seeds N] [--<config-field> VALUE ...] [--out DIR]
     mqd adapt DIR [--tasks ...] [--goals 1000]
     mqd plot  DIR
+    mqd render DIR [--index N | --goal X Y] [--out FILE.gif]
 
 `run` and `sweep` print a progress line per chunk of generations and a final
 summary; every Config field has a flag (`--t-nov 0.05`, `--budgeted`). A
@@ -282,6 +283,39 @@ def _plot(out: str) -> None:
         plots.adaptation_figure(found, "steps", "adaptation steps", os.path.join(out, "fig4_adaptation_steps.png"))
 
 
+def _render(args: argparse.Namespace) -> None:
+    """A skill of a `mqd run` folder as an animated GIF: the robot executing it, or a 2D task's behavior path."""
+    # Offscreen OpenGL for MuJoCo's renderer unless the user chose a platform (read when mujoco is imported).
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    files = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
+    if not all(os.path.exists(f) for f in files):
+        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (metrics.json, repertoire.npz)")
+    try:
+        cfg = Config.from_dict(folders.read_json(os.path.join(args.dir, "metrics.json"))["config"])
+        with np.load(os.path.join(args.dir, "repertoire.npz")) as f:
+            actions, behaviors = f["actions"], f["behaviors"]
+    except (OSError, KeyError) as e:
+        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (metrics.json, repertoire.npz): {e}") from e
+    if args.goal is not None:
+        index = int(np.argmin(np.linalg.norm(behaviors - np.asarray(args.goal), axis=1)))
+    elif 0 <= args.index < len(actions):
+        index = args.index
+    else:
+        raise ValueError(f"--index {args.index}: the repertoire holds {len(actions)} skills (0 to {len(actions) - 1})")
+    out = args.out or os.path.join(args.dir, f"skill_{index}.gif")
+    print(f"skill {index}: behavior {np.round(behaviors[index], 3).tolist()}, action "
+          f"{np.round(actions[index], 3).tolist()}")
+    try:
+        frames = get_task(cfg).frames(actions[index], args.width, args.height)
+    except NotImplementedError as e:
+        raise ValueError(str(e)) from e
+    except Exception as e:  # MuJoCo's OpenGL context: say how to get one offscreen
+        if "gl" not in str(e).lower():
+            raise
+        raise ValueError(f"cannot render ({type(e).__name__}: {e}); offscreen: set MUJOCO_GL=egl (or osmesa)") from e
+    plots.write_animation(frames, out)
+
+
 def _locked_plot(args: argparse.Namespace) -> None:
     with folders.lock(args.dir):
         _plot(args.dir)
@@ -329,11 +363,21 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
 
     pl = sub.add_parser("plot", help="tables and figures of a results folder")
     pl.add_argument("dir")
-    return parser, {"run": run, "sweep": sw, "adapt": ad, "plot": pl}
+
+    rd = sub.add_parser("render", help="watch a skill of a `mqd run` folder: an animated GIF")
+    rd.add_argument("dir", help="a results folder of `mqd run`")
+    which = rd.add_mutually_exclusive_group()
+    which.add_argument("--index", type=int, default=0, help="the skill's row in repertoire.npz (default: 0)")
+    which.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                       help="the skill whose behavior is nearest to this one")
+    rd.add_argument("--out", default=None, help="the GIF to write (default: DIR/skill_<index>.gif)")
+    rd.add_argument("--width", type=_positive, default=320)
+    rd.add_argument("--height", type=_positive, default=240)
+    return parser, {"run": run, "sweep": sw, "adapt": ad, "plot": pl, "render": rd}
 
 
 _COMMANDS: dict[str, Callable[[argparse.Namespace], None]] = {
-    "run": _run, "sweep": _sweep, "adapt": _adapt, "plot": _locked_plot}
+    "run": _run, "sweep": _sweep, "adapt": _adapt, "plot": _locked_plot, "render": _render}
 
 
 def main(argv: list[str] | None = None) -> None:

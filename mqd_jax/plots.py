@@ -37,8 +37,8 @@ def save(fig: Any, path: str, description: str | None = None) -> str:
     return path
 
 
-def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str) -> None:
-    """Draws `task.layout()` and behaviors [N, 2] over the task's behavior box on the axes `ax`."""
+def layout(ax: Any, task: Task) -> None:
+    """Draws `task.layout()` on the axes `ax`, each label once in the legend."""
     from matplotlib.patches import Ellipse, Rectangle
 
     labelled: set[str] = set()
@@ -51,6 +51,11 @@ def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str) -> None:
         patch = Ellipse(((x0 + x1) / 2, (y0 + y1) / 2), x1 - x0, y1 - y0, **style) if region.shape == "disk" \
             else Rectangle((x0, y0), x1 - x0, y1 - y0, **style)
         ax.add_patch(patch)
+
+
+def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str) -> None:
+    """Draws `task.layout()` and behaviors [N, 2] over the task's behavior box on the axes `ax`."""
+    layout(ax, task)
     ax.scatter(behaviors[:, 0], behaviors[:, 1], s=2, c="tab:blue", zorder=3, label=f"behaviors ({len(behaviors)})")
     ax.set(xlim=(task.behavior_low[0], task.behavior_high[0]), ylim=(task.behavior_low[1], task.behavior_high[1]),
            aspect="equal", title=title, xlabel="behavior x", ylabel="behavior y")
@@ -106,3 +111,34 @@ def adaptation_figure(results: dict[str, dict[str, dict[str, list[float]]]], met
     # Outside the axes, so that no bar or error bar is hidden behind it.
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
     return save(fig, path)
+
+
+def path_frames(task: Task, path: np.ndarray, width: int, height: int, title: str) -> np.ndarray:
+    """Frames [F, height, width, 3] uint8 of a behavior moving along path [F, 2] over the task's layout."""
+    plt = pyplot()
+    if plt is None:
+        raise ValueError("drawing a 2D skill needs matplotlib: pip install -e .[plot]")
+    fig, ax = plt.subplots(figsize=(width / 100, height / 100), dpi=100)
+    frames = []
+    for i in range(len(path)):
+        ax.clear()
+        layout(ax, task)
+        ax.plot(path[:i + 1, 0], path[:i + 1, 1], c="tab:blue", lw=1.5)
+        ax.scatter(path[i:i + 1, 0], path[i:i + 1, 1], s=25, c="tab:blue", zorder=3)
+        ax.set(xlim=(task.behavior_low[0], task.behavior_high[0]),
+               ylim=(task.behavior_low[1], task.behavior_high[1]), aspect="equal", xticks=[], yticks=[])
+        ax.set_title(title, fontsize=8)
+        fig.canvas.draw()
+        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+    plt.close(fig)
+    return np.stack(frames)
+
+
+def write_animation(frames: np.ndarray, path: str, fps: float = 12.0) -> str:
+    """Writes frames [F, H, W, 3] uint8 as an animated GIF (Pillow, matplotlib's dependency) and says so."""
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    print(f"wrote {path} ({len(frames)} frames)")
+    return path

@@ -110,6 +110,13 @@ class Task:
         """The scene's parts to draw under the behaviors in figures; the default: none."""
         return ()
 
+    def frames(self, action: np.ndarray, width: int, height: int) -> np.ndarray:
+        """Frames [F, height, width, 3] uint8 of the skill `action` [n] being executed (`mqd render`).
+
+        The default: not available for this task (raises NotImplementedError).
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not render its skills (Task.frames)")
+
 
 def check_outputs(task: Task, name: str, batch: int) -> None:
     """Raises ValueError unless `task.evaluate` has the protocol's output shapes and dtypes.

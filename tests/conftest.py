@@ -1,6 +1,9 @@
 import dataclasses
 import os
 
+# MuJoCo's offscreen renderer (tests that render skip where no EGL context can be made); read at mujoco's import.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 import jax
 import jax.numpy as jnp
 import numpy as np
