@@ -175,7 +175,7 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
         raise ValueError(f"{out!r} refused: {describe(clash)}")
     os.makedirs(out, exist_ok=True)
     remove_derived(out)
-    stem = _stem(out, cfg.task_name, cfg.algorithm)
+    stem = _stem(out, cfg.task_name, cfg.algorithm_name)
     meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "provenance": provenance()}
     rep = jax.device_get(states.repertoire)
     m = max(int(rep.count.max()), 1)
@@ -215,7 +215,7 @@ class Runs:
 
 
 def task_order(task: str) -> int:
-    """Sort key: the registry's order (the paper's tasks first), then the rest."""
+    """Sort key: the registry's order (entry points, then tasks registered in Python), then the rest."""
     return (*registry.registered_tasks(), task).index(task)
 
 
@@ -261,7 +261,7 @@ def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     if not os.path.exists(path + ".json"):
         raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task}` with M-QD first")
     saved = read_json(path + ".json")
-    cfg, keys = Config.from_dict(upgraded(saved["config"])), np.asarray(saved["keys"], np.uint32)
+    cfg, keys = Config.from_dict(saved["config"]), np.asarray(saved["keys"], np.uint32)
     state, _ = checkpoint.load(path + ".msgpack", cfg, keys)
     return cfg, keys, state
 
