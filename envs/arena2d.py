@@ -8,7 +8,9 @@ that remains, so a behavior is a continuous function of the action.
 
 Walls and obstacles are axis-aligned boxes. The agent slides along them: each
 time step moves along x and then along y, and each move stops at the first face
-it would cross, so motion tangent to a face continues.
+it would cross, so motion tangent to a face continues. An obstacle that touches
+an arena wall is sealed to it (`sealed`): its faces on the wall are moved beyond
+it, so an agent sliding along the wall cannot pass through the obstacle's end.
 
 Every function here works on batches of numpy arrays as well as JAX arrays, so
 peers that need plain numpy (the pyribs benchmark, an ask/tell evaluator) run
@@ -50,6 +52,17 @@ def step_displacements(actions: Array) -> Array:
     frac = xp.clip(sub[:, :, 2:3] - steps, 0.0, 1.0)  # [B, s, 10]
     disp = sub[:, :, None, :2] * DT * frac[..., None]  # [B, s, 10, 2]
     return xp.moveaxis(disp.reshape(actions.shape[0], -1, 2), 1, 0)
+
+
+def sealed(boxes: np.ndarray, lo: float = 0.0, hi: float = 1.0) -> np.ndarray:
+    """boxes [m, 4] (x_lo, y_lo, x_hi, y_hi) with every face that lies on or beyond an arena wall moved one
+    arena width past it: a box that touches a wall then spans an agent sliding along that wall (the motion and
+    visibility tests are strict, so they would let it pass along a face that ends exactly at the wall)."""
+    boxes = np.array(boxes, np.float32)
+    width = hi - lo
+    boxes[:, :2] = np.where(boxes[:, :2] <= lo, lo - width, boxes[:, :2])
+    boxes[:, 2:] = np.where(boxes[:, 2:] >= hi, hi + width, boxes[:, 2:])
+    return boxes
 
 
 def _move_axis(pos: Array, delta: Array, axis: int, boxes: Array, lo: float, hi: float) -> Array:

@@ -1,11 +1,14 @@
 """The KUKA LBR iiwa 14 scenes: kinematics and inverse kinematics read from the MjModel, joint trajectories
 through end-effector via-points, and rollouts on C MuJoCo.
 
-Scenes are MJCF files in `envs/assets/` (`iiwa14.xml` is the robot; a scene
-includes it and adds a table and objects). The platform's top and the table's top
-are at z = 0; the table spans x in [0.3, 0.9], y in [-0.3, 0.3]. At the start the
-end effector (site "ee", the tip of a closed gripper) points down, 0.25 m above
-the table's centre.
+Scenes are MJCF files in `envs/assets/` (`iiwa14.xml` is the robot,
+`table.xml` the table and floor; a scene includes both and adds
+objects). The platform's top and the table's top are at z = 0; the table spans
+x in [0.25, 1.05], y in [-0.6, 0.6]. At the start the end effector (site "ee",
+the tip of a closed gripper) points down, 0.25 m above the table's centre.
+
+Joint trajectories keep the datasheet's joint-speed limits: a segment between
+via-points lasts at least as long as its slowest joint needs (`speed_limited`).
 
 Forward kinematics is the body chain of the MjModel (body offsets, joint axes,
 site offset), written in JAX so that inverse kinematics (damped least squares,
@@ -47,14 +50,19 @@ sys.stdout.write("".join(line for line in _printed.getvalue().splitlines(keepend
                          if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp"))))
 
 ASSETS = os.path.join(os.path.dirname(__file__), "assets")
-TABLE_LOW, TABLE_HIGH = (0.3, -0.3), (0.9, 0.3)
-# Where via-points may go: the part of the table the tool reaches pointing down (for targets near the
-# edges of the box IK stops at the nearest reachable pose).
-REACH_LOW, REACH_HIGH = (0.4, -0.3), (0.8, 0.3)
-TABLE_CENTRE = (0.6, 0.0)
+TABLE_LOW, TABLE_HIGH = (0.25, -0.6), (1.05, 0.6)
+TABLE_CENTRE = (0.65, 0.0)
 START_HEIGHT = 0.25
-IK_ITERATIONS = 30
+IK_ITERATIONS = 50
 IK_DAMPING = 0.05
+# A via-point is reached when IK ends within 5 mm of it and its axes within ~3 degrees of pointing down at
+# gamma; a farther one is out of the arm's reach (PyRep's IK would raise), and its rollout is invalid.
+IK_POSITION_TOLERANCE = 0.005
+IK_AXIS_TOLERANCE = 0.05
+# KUKA LBR iiwa 14 R820 datasheet, deg/s; trajectories plan at SPEED_MARGIN of them, so that the servos'
+# catching up after a lag stays within them.
+JOINT_SPEED_LIMITS = (85.0, 85.0, 100.0, 75.0, 130.0, 135.0, 135.0)
+SPEED_MARGIN = 0.9
 # Pointing down, gamma = 0: the end effector's z axis is the world's -z and its x axis the world's -x
 # (the arm leaning forward over the table, flange unturned).
 _DOWN = np.diag([-1.0, 1.0, -1.0])
@@ -160,6 +168,14 @@ def start_pose(scene: str) -> np.ndarray:
     return np.asarray(q, np.float64)
 
 
+def speed_limited(q_start: jax.Array, q_via: jax.Array, durations: jax.Array, timestep: float) -> jax.Array:
+    """durations [V] (steps) stretched so that no joint moves faster than SPEED_MARGIN x its datasheet limit
+    along the linear joint-space segments from q_start [7] through q_via [V, 7]."""
+    steps = jnp.abs(jnp.diff(jnp.concatenate([q_start[None], q_via]), axis=0))  # [V, 7] rad
+    limits = jnp.deg2rad(jnp.asarray(JOINT_SPEED_LIMITS)) * SPEED_MARGIN * timestep  # rad per step
+    return jnp.maximum(durations, (steps / limits).max(axis=1))
+
+
 def joint_trajectory(q_start: jax.Array, q_via: jax.Array, durations: jax.Array, horizon: int) -> jax.Array:
     """Joint targets [horizon, 7]: linear in joint space from q_start through q_via [V, 7].
 
@@ -217,13 +233,18 @@ def start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
     mujoco.mj_forward(model, data)
     hold = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, "hold")
     if hold >= 0:
-        tool, obj = model.eq_obj1id[hold], model.eq_obj2id[hold]
-        adr = model.jnt_qposadr[model.body_jntadr[obj]]
+        tool, adr = model.eq_obj1id[hold], object_qpos_address(model)
         rel_pos, rel_quat = model.eq_data[hold, 3:6], model.eq_data[hold, 6:10]
         data.qpos[adr:adr + 3] = data.xpos[tool] + data.xmat[tool].reshape(3, 3) @ rel_pos
         mujoco.mju_mulQuat(data.qpos[adr + 3:adr + 7], data.xquat[tool], rel_quat)
         mujoco.mj_forward(model, data)
     return data
+
+
+def object_qpos_address(model: mujoco.MjModel) -> int:
+    """Where the free joint of the body "object" starts in qpos (its position, then its quaternion)."""
+    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
+    return int(model.jnt_qposadr[model.body_jntadr[body]])
 
 
 # MuJoCo Warp's buffers: contacts per world (a cube on a table touches at up to 8 points; fingers and shelves

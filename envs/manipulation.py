@@ -1,11 +1,21 @@
 """What the KUKA tasks share: via-point actions through IK, the physics backend, and its rollouts.
 
 A task's action is a sequence of via-points; a subclass says how an action
-row becomes via-points (`via_points`) and what behaviors and qualities the
-rollouts give (`outcome`). Every rollout starts from the scene's start state
-(arm pointing down above the table's centre), follows the joint trajectory
-through the via-points, holds the last one for `settle` steps, and can switch
-the scene's equality constraints off at a given step (Place's release).
+row becomes via-points (`via_points`), when the scene's equality constraints
+are on (`release_switch`: Place's weld) and what behaviors and qualities the rollouts give
+(`outcome`). Every rollout starts from the scene's start state (arm pointing
+down above the table's centre), follows the joint trajectory through the
+via-points, each segment stretched where the joints' speed limits need it
+(`kuka.speed_limited`), and holds the last one to the end of the horizon:
+`motion_steps` for the motion, then `settle` steps for the object to come to
+rest.
+
+A rollout is invalid (valid = False) when a via-point is out of the arm's reach
+(IK ends farther than `kuka.IK_POSITION_TOLERANCE` from it; not simulated), when
+the speed-limited motion does not fit in `motion_steps` (not simulated), when
+the simulation diverges, when the object ends off the table top, or when the
+object still moves faster than `REST_SPEED` at the end (it has not come to rest,
+so its final position is not yet known).
 
 `backend`: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX's JAX implementation, any
 accelerator), "warp" (MuJoCo Warp through MJX, NVIDIA GPUs; the `gpu` extra)
@@ -23,13 +33,15 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from flax import struct
 from mujoco import rollout
 
 from envs import kuka
 from mqd_jax.task import Region, Task
 
 BACKENDS = ("auto", "mujoco", "mjx", "warp")
-SETTLE = 100
+SETTLE = 250  # steps (1 s) after the motion for the object to come to rest
+REST_SPEED = 0.01  # m/s: an object faster than this at the end has not come to rest
 # The paper's Table I: final coverage (mean, std) per scene and preset.
 PAPER_COVERAGE = {
     "push_cube": {"mqd": (0.828, 0.059), "qd": (0.709, 0.047), "random": (0.216, 0.073)},
@@ -50,14 +62,30 @@ def auto_backend() -> str:
     return "warp" if jax.default_backend() == "gpu" and warp_installed() else "mjx"
 
 
+@struct.dataclass
+class Plan:
+    """What an action batch becomes before any physics: joint-space via-points and whether they were reached,
+    the speed-limited segment durations, and the actuators' targets.
+
+    q_via [B, V, 7], reached [B], durations [B, V] (steps), fits [B] (the motion ends within
+    motion_steps), ctrl [B, horizon, nu (+ neq)].
+    """
+
+    q_via: jax.Array
+    reached: jax.Array
+    durations: jax.Array
+    fits: jax.Array
+    ctrl: jax.Array
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Manipulation(Task):
     table_ii_column = "robot"
     paper_seeds = 10
-
     scene: str = "push_cube"
     backend: str = "auto"
-    horizon: int = 400  # steps of 4 ms
+    motion_steps: int = 400  # steps of 4 ms for the whole speed-limited motion
+    settle: int = SETTLE
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -66,77 +94,92 @@ class Manipulation(Task):
         if backend == "warp" and not warp_installed():
             raise ValueError("backend='warp' needs MuJoCo Warp: pip install -e .[gpu]")
         q_start = kuka.start_pose(self.scene)
+        model = kuka.load(self.scene)
         object.__setattr__(self, "physics", backend)
-        object.__setattr__(self, "_kinematics", kuka.Kinematics(kuka.load(self.scene)))
+        object.__setattr__(self, "_kinematics", kuka.Kinematics(model))
         object.__setattr__(self, "_q_start", q_start)
         rollout = (kuka.CRollout(self.scene, q_start) if backend == "mujoco"
-                   else kuka.MjxRollout(self.scene, q_start, impl="warp" if backend == "warp" else "jax"))
+                   else kuka.MjxRollout(self.scene, q_start, "warp" if backend == "warp" else "jax"))
         object.__setattr__(self, "_rollout", rollout)
+
+    @property
+    def horizon(self) -> int:
+        """Steps of every rollout: the motion's budget, then the settling."""
+        return self.motion_steps + self.settle
 
     def via_points(self, actions: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """actions [B, n] -> targets [B, V, 3], gammas [B, V], durations [B, V] (steps)."""
         raise NotImplementedError
 
-    def outcome(self, qpos: jax.Array, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Final qpos [B, nq], sensors [B, H, ns] and durations [B, V] -> behaviors [B, 2], qualities [B]."""
-        raise NotImplementedError
-
-    def controls(self, actions: jax.Array) -> jax.Array:
-        """actions [B, n] -> joint targets [B, horizon, 7] (IK through the via-points)."""
-        return self._joint_targets(*self.via_points(actions))
-
-    def _joint_targets(self, targets: jax.Array, gammas: jax.Array, durations: jax.Array) -> jax.Array:
-        q_start = jnp.asarray(self._q_start, jnp.float32)
-
-        def one(target: jax.Array, gamma: jax.Array, duration: jax.Array) -> jax.Array:
-            def solve(q: jax.Array, pose: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
-                q, _ = self._kinematics.inverse(q, *pose)
-                return q, q
-
-            _, q_via = jax.lax.scan(solve, q_start, (target, gamma))
-            return kuka.joint_trajectory(q_start, q_via, duration, self.horizon)
-
-        return jax.vmap(one)(targets, gammas, durations)
-
     def release_switch(self, durations: jax.Array) -> jax.Array | None:
-        """[B, horizon, neq] on/off switches of the scene's equality constraints, or None if it has none."""
+        """[B, horizon, neq] on/off switches of the scene's equality constraints for speed-limited durations
+        [B, V], or None if it has none."""
         return None
 
-    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        return self.evaluate_masked(actions, key, jnp.ones(actions.shape[0], bool))
+    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Sensors [B, H, ns] (ee_pos, object_pos) and durations [B, V] -> behaviors [B, 2], qualities [B]."""
+        raise NotImplementedError
+
+    def plan(self, actions: jax.Array) -> Plan:
+        """actions [B, n] -> the Plan: IK through the via-points (each from the last), speed-limited durations,
+        and the controls (the joint trajectory, then any equality switches)."""
+        targets, gammas, durations = self.via_points(actions)
+        q_start = jnp.asarray(self._q_start, jnp.float32)
+        timestep = float(kuka.load(self.scene).opt.timestep)
+
+        def one(target: jax.Array, gamma: jax.Array, duration: jax.Array):
+            def solve(q: jax.Array, pose: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+                q, r = self._kinematics.inverse(q, *pose)
+                return q, (q, r)
+
+            _, (q_via, r) = jax.lax.scan(solve, q_start, (target, gamma))
+            reached = ((jnp.linalg.norm(r[:, :3], axis=1) <= kuka.IK_POSITION_TOLERANCE).all()
+                       & (jnp.abs(r[:, 3:]) <= kuka.IK_AXIS_TOLERANCE).all())
+            duration = kuka.speed_limited(q_start, q_via, duration, timestep)
+            return q_via, reached, duration, kuka.joint_trajectory(q_start, q_via, duration, self.horizon)
+
+        q_via, reached, durations, arm = jax.vmap(one)(targets, gammas, durations)
+        fits = durations.sum(axis=1) <= self.motion_steps
+        switch = self.release_switch(durations)
+        ctrl = arm if switch is None else jnp.concatenate([arm, switch], axis=-1)
+        return Plan(q_via, reached, durations, fits, ctrl)
 
     def rollout_controls(self, actions: jax.Array) -> jax.Array:
         """actions [B, n] -> what the backends take: joint targets and, for a scene with equality
         constraints, their switches, [B, horizon, nu (+ neq)]."""
-        return self._rollout_controls(*self.via_points(actions))
+        return self.plan(actions).ctrl
 
-    def _rollout_controls(self, targets: jax.Array, gammas: jax.Array, durations: jax.Array) -> jax.Array:
-        ctrl = self._joint_targets(targets, gammas, durations)
-        switch = self.release_switch(durations)
-        return ctrl if switch is None else jnp.concatenate([ctrl, switch], axis=-1)
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        return self.evaluate_masked(actions, key, jnp.ones(actions.shape[0], bool))
+
+    def simulate(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """ctrl [B, horizon, nu (+ neq)], mask [B] -> final qpos [B, nq], sensors [B, horizon, ns], finite [B] on the
+        task's backend (C MuJoCo skips the rows outside the mask; MJX runs them all)."""
+        if self.physics != "mujoco":
+            return self._rollout(ctrl, mask)
+        model = kuka.load(self.scene)
+        batch = ctrl.shape[0]
+        shapes = (jax.ShapeDtypeStruct((batch, model.nq), jnp.float32),
+                  jax.ShapeDtypeStruct((batch, self.horizon, model.nsensordata), jnp.float32),
+                  jax.ShapeDtypeStruct((batch,), jnp.bool_))
+        return jax.pure_callback(self._rollout, shapes, ctrl, mask, vmap_method="expand_dims")
 
     def evaluate_masked(self, actions: jax.Array, key: jax.Array,
                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        targets, gammas, durations = self.via_points(actions)
-        ctrl = self._rollout_controls(targets, gammas, durations)
-        if self.physics != "mujoco":
-            qpos, sensors, finite = self._rollout(ctrl, mask)
-        else:
-            model = kuka.load(self.scene)
-            batch = actions.shape[0]
-            shapes = (jax.ShapeDtypeStruct((batch, model.nq), jnp.float32),
-                      jax.ShapeDtypeStruct((batch, self.horizon, model.nsensordata), jnp.float32),
-                      jax.ShapeDtypeStruct((batch,), jnp.bool_))
-            qpos, sensors, finite = jax.pure_callback(self._rollout, shapes, ctrl, mask, vmap_method="expand_dims")
-        behaviors, qualities = self.outcome(qpos, sensors, durations)
-        obj = qpos[:, 7:10]
+        plan = self.plan(actions)
+        runs = mask & plan.reached & plan.fits
+        _, sensors, finite = self.simulate(plan.ctrl, runs)
+        behaviors, qualities = self.outcome(sensors, plan.durations)
+        obj = sensors[:, -1, 3:6]
         low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
-        return behaviors, qualities, finite & on_table
+        timestep = float(kuka.load(self.scene).opt.timestep)
+        speed = jnp.linalg.norm(sensors[:, -1, 3:6] - sensors[:, -2, 3:6], axis=1) / timestep
+        return behaviors, qualities, runs & finite & on_table & (speed <= REST_SPEED)
 
     def layout(self) -> tuple[Region, ...]:
         """The table and any shelves (boxes of the scene named table*/shelf*, from its MJCF), the
-        via-points' reach and the object's start, seen from above."""
+        via-points' box (x, y) and the object's start, seen from above."""
         model = kuka.load(self.scene)
         parts = []
         for g in range(model.ngeom):
@@ -150,7 +193,7 @@ class Manipulation(Task):
         body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
         r = float(model.geom_size[model.body_geomadr[body]][0])
         (cx, cy) = kuka.TABLE_CENTRE
-        return (*parts, Region("via-point reach", kuka.REACH_LOW, kuka.REACH_HIGH, filled=False),
+        return (*parts, Region("via-point box", tuple(self.action_low[:2]), tuple(self.action_high[:2]), filled=False),
                 Region("object start", (cx - r, cy - r), (cx + r, cy + r), colour="tab:red"))
 
     def frames(self, action: np.ndarray, width: int = 320, height: int = 240, every: int = 8) -> np.ndarray:

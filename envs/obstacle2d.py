@@ -5,6 +5,8 @@ Behavior: the agent's final position. Quality: `delta_min / delta`, where
 of the shortest obstacle-free path from the start to the final position. Among
 axis-aligned boxes that shortest path bends only at box corners, so it is exact:
 a visibility graph over the start and the corners, solved once on the host.
+Obstacles that touch the arena's walls are sealed to them (`arena2d.sealed`) for
+both the motion and the shortest path.
 """
 
 from __future__ import annotations
@@ -76,7 +78,9 @@ class Obstacle2D(Task):
     obstacles: tuple[tuple[float, float, float, float], ...] = OBSTACLES
 
     def __post_init__(self) -> None:
-        nodes, dist = _graph(np.asarray(self.start), np.asarray(self.obstacles, np.float64))
+        blocking = arena2d.sealed(np.asarray(self.obstacles))
+        nodes, dist = _graph(np.asarray(self.start), blocking.astype(np.float64))
+        object.__setattr__(self, "_blocking", blocking)
         object.__setattr__(self, "_nodes", nodes)
         object.__setattr__(self, "_node_dist", dist)
 
@@ -85,14 +89,14 @@ class Obstacle2D(Task):
         xp = arena2d.xp_of(points)
         nodes = xp.asarray(self._nodes)
         p = xp.broadcast_to(points[:, None, :], (points.shape[0], *nodes.shape))
-        seen = ~segment_blocked(xp.broadcast_to(nodes, p.shape), p, xp.asarray(self.obstacles, np.float32))
+        seen = ~segment_blocked(xp.broadcast_to(nodes, p.shape), p, xp.asarray(self._blocking))
         via = xp.asarray(self._node_dist) + xp.linalg.norm(p - nodes, axis=-1)
         return xp.where(seen, via, xp.inf).min(axis=-1)
 
     def evaluate(self, actions: arena2d.Array, key: jax.Array | None = None):
         """Rolls out actions[B, 9]; numpy in, numpy out (JAX in, JAX out). `key` is unused."""
         xp = arena2d.xp_of(actions)
-        boxes = xp.asarray(self.obstacles, np.float32)
+        boxes = xp.asarray(self._blocking)
 
         def step(carry, delta):
             pos, travelled = carry

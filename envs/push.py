@@ -1,14 +1,15 @@
 """PushCube and PushSphere (paper, "Object Pushing Task") on the KUKA iiwa scene.
 
-An action is 2 via-points `(x, y, gamma, T)`: end-effector position on the
-table (z fixed at the object's centre height), rotation about the vertical, and
-duration in time steps of 4 ms; bounds: x in [0.4, 0.8], y in [-0.3, 0.3],
-gamma in [-pi/2, pi/2], T in [25, 150]. The arm starts pointing down 0.25 m
-above the object at the table's centre, moves through the via-points (joint
-targets from IK, linear in joint space), then holds for 100 steps; the horizon
-is 400 steps. Behavior: the object's final (x, y). Quality: minus the distance
-the end effector travelled. An object that leaves the table, or a simulation
-that diverges, gives valid = False.
+An action is 2 via-points `(x, y, gamma, T)`: end-effector position (z fixed
+at the object's centre height), rotation about the vertical, and duration in
+time steps of 4 ms; bounds: x in VIA_LOW..VIA_HIGH (the arm's reachable front
+workspace over the table; a via-point outside the reach makes the rollout
+invalid), gamma in [-pi/2, pi/2], T in [25, 150] (a minimum: the joints'
+speed limits may stretch it). The arm starts pointing down 0.25 m above the
+object at the table's centre, moves through the via-points with its gripper
+closed, then holds while the object comes to rest. Behavior: the object's final
+(x, y) on the 0.8 x 1.2 m table. Quality: minus the distance the end effector
+travelled. See `envs.manipulation` for what makes a rollout invalid.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ from envs.manipulation import SETTLE, Manipulation
 
 VIA_POINTS = 2
 T_MIN, T_MAX = 25.0, 150.0
+# The via-points' (x, y) box: the front workspace the gripper reaches pointing down at the table's height.
+VIA_LOW, VIA_HIGH = (0.3, -0.55), (0.8, 0.55)
+# Steps for the speed-limited motion: twice the longest requested one (longer motions are invalid).
+MOTION_STEPS = 2 * VIA_POINTS * int(T_MAX)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -37,18 +42,18 @@ class Push(Manipulation):
         targets = jnp.concatenate([via[..., :2], jnp.full((*via.shape[:2], 1), self.height)], axis=-1)
         return targets, via[..., 2], via[..., 3]
 
-    def outcome(self, qpos: jax.Array, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
-        return qpos[:, 7:9], -self.ee_path_length(sensors)
+    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
+        return sensors[:, -1, 3:5], -self.ee_path_length(sensors)
 
 
-def make(scene: str, height: float, backend: str = "auto", t_max: float = T_MAX, settle: int = SETTLE) -> Push:
-    """A push task; `t_max` and `settle` shorten the horizon for quick checks."""
-    (x0, y0), (x1, y1) = kuka.REACH_LOW, kuka.REACH_HIGH
+def make(scene: str, height: float, backend: str = "auto", t_max: float = T_MAX,
+         motion_steps: int = MOTION_STEPS, settle: int = SETTLE) -> Push:
+    """A push task; `t_max`, `motion_steps` and `settle` shorten the horizon for quick checks."""
     h = math.pi / 2
-    low = (x0, y0, -h, min(T_MIN, t_max)) * VIA_POINTS
-    high = (x1, y1, h, t_max) * VIA_POINTS
+    low = (*VIA_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS
+    high = (*VIA_HIGH, h, t_max) * VIA_POINTS
     return Push(low, high, kuka.TABLE_LOW, kuka.TABLE_HIGH, scene=scene, height=height, backend=backend,
-                horizon=VIA_POINTS * math.ceil(t_max) + settle)
+                motion_steps=motion_steps, settle=settle)
 
 
 def cube(backend: str = "auto") -> Push:

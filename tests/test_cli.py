@@ -51,7 +51,7 @@ def test_mqd_run_resumes_its_checkpoint_and_refuses_another_config(tmp_path, cap
 
 
 def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
-    dropped = r"9 new niches did not fit in the repertoire: raise capacity \(--capacity\) above 10"
+    dropped = r"7 new niches did not fit in the repertoire: raise capacity \(--capacity\) above 10"
     with pytest.warns(UserWarning, match=dropped):
         cli.main(["run", "--generations", "3", "--population", "10", "--capacity", "10", "--out", str(tmp_path)])
 

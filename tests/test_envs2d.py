@@ -1,3 +1,5 @@
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -39,6 +41,30 @@ def test_walls_and_obstacles_block_and_agent_slides():
     np.testing.assert_allclose(b[0], [0.5, 0.0], atol=1e-6)
 
 
+def test_obstacles_touching_a_wall_are_sealed_to_it():
+    task = registry.make("obstacle2d")
+    # Right to the wall x = 1, then up along it: the wall piece (0.65-1, 0.5-0.55) stops the agent at y = 0.5
+    # (it used to slide through the piece's end on the wall and reach (1, 1)).
+    b, _, _ = task.evaluate(_action([1, 0, 10], [0, 1, 10], [0, 1, 10]))
+    np.testing.assert_allclose(b[0], [1.0, 0.5], atol=1e-6)
+    # The same along the left wall, and the way back down from above is blocked too.
+    b, _, _ = task.evaluate(_action([-1, 0, 10], [0, 1, 10], [0, 1, 10]))
+    np.testing.assert_allclose(b[0], [0.0, 0.5], atol=1e-6)
+    # The shortest path to a point above the wall on the wall's edge goes through the gap, not along the edge:
+    # by hand: start -> the block's corner (0.6, 0.2) -> the gap's corner (0.65, 0.55) -> (1, 0.6).
+    expected = np.hypot(0.1, 0.1) + np.hypot(0.05, 0.35) + np.hypot(0.35, 0.05)
+    assert float(task.shortest_path(np.asarray([[1.0, 0.6]], np.float32))[0]) == pytest.approx(expected, rel=1e-5)
+    # Brute force over random actions, step by step: the wall's band y 0.5-0.55 is crossed only in the gap.
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(task.action_low, task.action_high, (500, task.action_dim)).astype(np.float32)
+    times = np.arange(31, dtype=np.float32)
+    pos, _, _ = task.evaluate(np.concatenate([arena2d.truncated(a, times) for a in actions]))
+    pos = pos.reshape(len(actions), len(times), 2)
+    crossed = (pos[:, :-1, 1] <= 0.5) != (pos[:, 1:, 1] <= 0.5)
+    x = pos[:, 1:, 0]
+    assert crossed.any() and not np.any(crossed & ((x < 0.35) | (x > 0.65)))
+
+
 def test_detour_has_quality_below_one_and_geodesic_is_exact():
     task = registry.make("obstacle2d")
     # Around the block above the start: right, up past it, then left to above its centre.
@@ -61,7 +87,8 @@ def test_never_moving_has_quality_one():
 
 
 def test_object_is_pushed_in_the_push_direction():
-    task = registry.make("object2d")
+    # The hand-computed case starts the agent below the object (the task's own start is a corner).
+    task = dataclasses.replace(registry.make("object2d"), agent_start=(0.5, 0.2))
     idle = [0, 0, 0]
     # Straight up from (0.5, 0.2) into the object at (0.5, 0.5): it moves up only.
     b, q, _ = task.evaluate(_action([0, 1, 10], [0, 1, 4], idle, idle, idle))

@@ -189,9 +189,9 @@ def test_layouts_come_from_the_tasks():
     obstacles = [r for r in registry.make("obstacle2d").layout() if r.label == "obstacle"]
     assert [(*r.low, *r.high) for r in obstacles] == list(registry.make("obstacle2d").obstacles)
     shelves = {r.label: (r.low, r.high) for r in registry.make("place").layout() if r.label.startswith("shelf")}
-    # place.xml: shelf_low at (0.5, 0.15), half-size 0.1, top 8 cm; shelf_high at (0.7, -0.15), top 15 cm.
-    np.testing.assert_allclose(shelves["shelf low (top 8 cm)"], [(0.4, 0.05), (0.6, 0.25)], atol=1e-9)
-    np.testing.assert_allclose(shelves["shelf high (top 15 cm)"], [(0.6, -0.25), (0.8, -0.05)], atol=1e-9)
+    # place.xml: shelf_low at (0.55, 0.3), half-size 0.15, top 8 cm; shelf_high at (0.75, -0.3), top 15 cm.
+    np.testing.assert_allclose(shelves["shelf low (top 8 cm)"], [(0.4, 0.15), (0.7, 0.45)], atol=1e-9)
+    np.testing.assert_allclose(shelves["shelf high (top 15 cm)"], [(0.6, -0.45), (0.9, -0.15)], atol=1e-9)
 
 
 def test_results_round_trip_a_batch_of_states(swept):

@@ -1,0 +1,78 @@
+"""What uniform random actions do on the robot tasks: how many are valid and why not, how often they touch the
+object, whether the joints keep the datasheet's speed limits, how fast the gripper and the object move, and (Place)
+how settled the arm is when the cube is let go. C MuJoCo backend.
+
+    python experiments/random_actions.py [--actions 2000] [--tasks push_cube push_sphere place] [--out FILE.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import report
+from mujoco import rollout
+
+from envs import kuka, manipulation
+from mqd_jax import registry
+
+
+def _stats(name: str, num: int) -> dict[str, float]:
+    """The statistics of `num` uniform random actions on task `name`."""
+    task = registry.make(name, backend="mujoco")
+    actions = jnp.asarray(np.random.default_rng(0).uniform(task.action_low, task.action_high,
+                                                           (num, task.action_dim)), jnp.float32)
+    plan = jax.jit(task.plan)(actions)
+    _, _, valid = jax.jit(task.evaluate)(actions, None)
+    reached, fits, valid = np.asarray(plan.reached), np.asarray(plan.fits), np.asarray(valid)
+    runs = np.flatnonzero(reached & fits)
+    c, model = task._rollout, kuka.load(name)
+    state, sensors = rollout.rollout(c.model, c.datas, c.initial_state[None], np.asarray(plan.ctrl, np.float64)[runs],
+                                     control_spec=int(c.control_spec))
+    qvel = np.abs(state[:, :, 1 + model.nq:1 + model.nq + 7]).max(axis=1)  # [R, 7] peak joint speeds
+    limits = np.radians(kuka.JOINT_SPEED_LIMITS)
+    dt = float(model.opt.timestep)
+    ee_speed = np.linalg.norm(np.diff(sensors[:, :, :3], axis=1), axis=-1).max(axis=1) / dt
+    obj = sensors[:, :, 3:6]
+    end_speed = np.linalg.norm(obj[:, -1] - obj[:, -2], axis=-1) / dt
+    on_table = np.all((obj[:, -1, :2] >= kuka.TABLE_LOW) & (obj[:, -1, :2] <= kuka.TABLE_HIGH), axis=1)
+    out = {"actions": num, "IK reached": reached.mean(), "motion fits": (reached & fits).mean(),
+           "valid": valid.mean(), "off the table (of simulated)": 1 - on_table.mean(),
+           "still moving at the end (of simulated)": (end_speed > manipulation.REST_SPEED).mean(),
+           "joint speeds within limits (of simulated)": np.all(qvel <= limits, axis=1).mean(),
+           "worst joint speed / limit": (qvel / limits).max(),
+           "gripper peak speed median (m/s)": np.median(ee_speed), "gripper peak speed max (m/s)": ee_speed.max()}
+    if name.startswith("push"):
+        moved = np.linalg.norm(obj[:, -1, :2] - np.asarray(kuka.TABLE_CENTRE), axis=1) > 0.01
+        out["touch rate (object moved > 1 cm, of simulated)"] = moved.mean()
+        out["touch rate (of all actions)"] = moved.sum() / num
+    else:
+        release = np.asarray(task.release_step(plan.durations))[runs]
+        last = np.asarray(task.via_points(actions)[0])[runs, -1]
+        at_release = sensors[np.arange(len(runs)), release - 1, :3]
+        lag = np.linalg.norm(at_release - last, axis=1)
+        out["gripper to last via-point at release, median (mm)"] = 1e3 * np.median(lag)
+        out["gripper to last via-point at release, max (mm)"] = 1e3 * lag.max()
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--actions", type=int, default=2000)
+    parser.add_argument("--tasks", nargs="*", default=["push_cube", "push_sphere", "place"])
+    parser.add_argument("--out", default="results/random_actions.md")
+    args = parser.parse_args()
+    stats = {name: _stats(name, args.actions) for name in args.tasks}
+    keys = list(dict.fromkeys(k for s in stats.values() for k in s))
+    lines = [f"Uniform random actions, C MuJoCo; {report.machine()}.", "",
+             "| statistic | " + " | ".join(args.tasks) + " |", "|---|" + "---|" * len(args.tasks)]
+    for k in keys:
+        cells = [f"{stats[t][k]:.3g}" if k in stats[t] else "" for t in args.tasks]
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    report.write(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()
