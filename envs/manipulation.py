@@ -127,7 +127,7 @@ class Manipulation(Task):
         q_start = jnp.asarray(self._q_start, jnp.float32)
         timestep = float(kuka.load(self.scene).opt.timestep)
 
-        def one(target: jax.Array, gamma: jax.Array, duration: jax.Array):
+        def one(target: jax.Array, gamma: jax.Array, duration: jax.Array) -> tuple[jax.Array, ...]:
             def solve(q: jax.Array, pose: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, tuple[jax.Array, ...]]:
                 q, r = self._kinematics.inverse(q, *pose)
                 return q, (q, r)
