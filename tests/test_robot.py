@@ -100,7 +100,7 @@ def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend):
                          [0.5, 0.012, 0.0, 30, 0.75, 0.012, 0.0, 50]], jnp.float32)
     out = {}
     for name in ("mujoco", backend):
-        task = push.make("push_cube", 0.025, backend=name, t_max=50, motion_steps=400, settle=150)
+        task = push.make("push_cube", 0.025, backend=name, t_max=50, motion_steps=340, settle=60)
         assert task.physics == name
         out[name] = [np.asarray(x) for x in jax.jit(task.evaluate)(actions, None)]
     (b_c, q_c, v_c), (b_x, q_x, v_x) = out["mujoco"], out[backend]
