@@ -64,14 +64,13 @@ def auto_backend() -> str:
 
 @struct.dataclass
 class Plan:
-    """What an action batch becomes before any physics: joint-space via-points and whether they were reached,
-    the speed-limited segment durations, and the actuators' targets.
+    """What an action batch becomes before any physics: whether IK reached its via-points, the speed-limited
+    segment durations, and the controls.
 
-    q_via [B, V, 7], reached [B], durations [B, V] (steps), fits [B] (the motion ends within
-    motion_steps), ctrl [B, horizon, nu (+ neq)].
+    reached [B], durations [B, V] (steps), fits [B] (the motion ends within motion_steps),
+    ctrl [B, horizon, nu (+ neq)].
     """
 
-    q_via: jax.Array
     reached: jax.Array
     durations: jax.Array
     fits: jax.Array
@@ -82,6 +81,7 @@ class Plan:
 class Manipulation(Task):
     table_ii_column = "robot"
     paper_seeds = 10
+
     scene: str = "push_cube"
     backend: str = "auto"
     motion_steps: int = 400  # steps of 4 ms for the whole speed-limited motion
@@ -98,6 +98,7 @@ class Manipulation(Task):
         object.__setattr__(self, "physics", backend)
         object.__setattr__(self, "_kinematics", kuka.Kinematics(model))
         object.__setattr__(self, "_q_start", q_start)
+        object.__setattr__(self, "_timestep", float(model.opt.timestep))
         rollout = (kuka.CRollout(self.scene, q_start) if backend == "mujoco"
                    else kuka.MjxRollout(self.scene, q_start, "warp" if backend == "warp" else "jax"))
         object.__setattr__(self, "_rollout", rollout)
@@ -125,7 +126,6 @@ class Manipulation(Task):
         and the controls (the joint trajectory, then any equality switches)."""
         targets, gammas, durations = self.via_points(actions)
         q_start = jnp.asarray(self._q_start, jnp.float32)
-        timestep = float(kuka.load(self.scene).opt.timestep)
 
         def one(target: jax.Array, gamma: jax.Array, duration: jax.Array) -> tuple[jax.Array, ...]:
             def solve(q: jax.Array, pose: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, tuple[jax.Array, ...]]:
@@ -135,14 +135,14 @@ class Manipulation(Task):
             _, (q_via, r) = jax.lax.scan(solve, q_start, (target, gamma))
             reached = ((jnp.linalg.norm(r[:, :3], axis=1) <= kuka.IK_POSITION_TOLERANCE).all()
                        & (jnp.abs(r[:, 3:]) <= kuka.IK_AXIS_TOLERANCE).all())
-            duration = kuka.speed_limited(q_start, q_via, duration, timestep)
-            return q_via, reached, duration, kuka.joint_trajectory(q_start, q_via, duration, self.horizon)
+            duration = kuka.speed_limited(q_start, q_via, duration, self._timestep)
+            return reached, duration, kuka.joint_trajectory(q_start, q_via, duration, self.horizon)
 
-        q_via, reached, durations, arm = jax.vmap(one)(targets, gammas, durations)
+        reached, durations, arm = jax.vmap(one)(targets, gammas, durations)
         fits = durations.sum(axis=1) <= self.motion_steps
         switch = self.release_switch(durations)
         ctrl = arm if switch is None else jnp.concatenate([arm, switch], axis=-1)
-        return Plan(q_via, reached, durations, fits, ctrl)
+        return Plan(reached, durations, fits, ctrl)
 
     def rollout_controls(self, actions: jax.Array) -> jax.Array:
         """actions [B, n] -> what the backends take: joint targets and, for a scene with equality
@@ -173,8 +173,7 @@ class Manipulation(Task):
         obj = sensors[:, -1, 3:6]
         low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
-        timestep = float(kuka.load(self.scene).opt.timestep)
-        speed = jnp.linalg.norm(sensors[:, -1, 3:6] - sensors[:, -2, 3:6], axis=1) / timestep
+        speed = jnp.linalg.norm(obj - sensors[:, -2, 3:6], axis=1) / self._timestep
         return behaviors, qualities, runs & finite & on_table & (speed <= REST_SPEED)
 
     def layout(self) -> tuple[Region, ...]:
