@@ -52,6 +52,9 @@ sys.stdout.write("".join(line for line in _printed.getvalue().splitlines(keepend
 ASSETS = os.path.join(os.path.dirname(__file__), "assets")
 TABLE_LOW, TABLE_HIGH = (0.25, -0.6), (1.05, 0.6)
 TABLE_CENTRE = (0.65, 0.0)
+# The via-points' (x, y) box: the front workspace the gripper reaches pointing down over the table (parts of it,
+# near the base and at the far corners, are out of reach: IK says so, and the rollout is invalid).
+VIA_LOW, VIA_HIGH = (0.3, -0.55), (0.8, 0.55)
 START_HEIGHT = 0.25
 IK_ITERATIONS = 50
 IK_DAMPING = 0.05

@@ -4,7 +4,7 @@ The robot starts holding a 5 cm cube under its gripper (a weld). An action is
 5 via-points `(x, y, z, gamma, T)`: gripper-tip position (the held cube's
 bottom), rotation about the vertical, duration in 4 ms steps (a minimum: the
 joints' speed limits may stretch it); bounds: x, y in
-VIA_LOW..VIA_HIGH (the reachable front workspace; a via-point out of reach
+kuka.VIA_LOW..VIA_HIGH (the reachable front workspace; a via-point out of reach
 makes the rollout invalid), z in [0.1, 0.35], gamma in [-pi/2, pi/2], T in [25,
 100]. After the last via-point is reached, the arm is given RELEASE_DELAY steps
 to settle there, then the weld is switched off (the same on every backend: an
@@ -29,9 +29,8 @@ from envs.manipulation import SETTLE, Manipulation
 VIA_POINTS = 5
 T_MIN, T_MAX = 25.0, 100.0
 Z_LOW, Z_HIGH = 0.1, 0.35
-VIA_LOW, VIA_HIGH = (0.3, -0.55), (0.8, 0.55)
 MOTION_STEPS = 2 * VIA_POINTS * int(T_MAX)
-RELEASE_DELAY = 50  # steps (0.2 s) between reaching the last via-point and opening the gripper
+RELEASE_DELAY = 50  # steps (0.2 s) between reaching the last via-point and letting the cube go
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -60,7 +59,7 @@ def make(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION
          settle: int = RELEASE_DELAY + SETTLE) -> Place:
     """The place task; `t_max`, `motion_steps` and `settle` shorten the horizon for quick checks."""
     h = math.pi / 2
-    low = (*VIA_LOW, Z_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS
-    high = (*VIA_HIGH, Z_HIGH, h, t_max) * VIA_POINTS
+    low = (*kuka.VIA_LOW, Z_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS
+    high = (*kuka.VIA_HIGH, Z_HIGH, h, t_max) * VIA_POINTS
     return Place(low, high, kuka.TABLE_LOW, kuka.TABLE_HIGH, scene="place", backend=backend,
                  motion_steps=motion_steps, settle=settle)

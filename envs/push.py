@@ -2,7 +2,7 @@
 
 An action is 2 via-points `(x, y, gamma, T)`: end-effector position (z fixed
 at the object's centre height), rotation about the vertical, and duration in
-time steps of 4 ms; bounds: x in VIA_LOW..VIA_HIGH (the arm's reachable front
+time steps of 4 ms; bounds: x, y in kuka.VIA_LOW..VIA_HIGH (the arm's reachable front
 workspace over the table; a via-point outside the reach makes the rollout
 invalid), gamma in [-pi/2, pi/2], T in [25, 150] (a minimum: the joints'
 speed limits may stretch it). The arm starts pointing down 0.25 m above the
@@ -25,8 +25,6 @@ from envs.manipulation import SETTLE, Manipulation
 
 VIA_POINTS = 2
 T_MIN, T_MAX = 25.0, 150.0
-# The via-points' (x, y) box: the front workspace the gripper reaches pointing down at the table's height.
-VIA_LOW, VIA_HIGH = (0.3, -0.55), (0.8, 0.55)
 # Steps for the speed-limited motion: twice the longest requested one (longer motions are invalid).
 MOTION_STEPS = 2 * VIA_POINTS * int(T_MAX)
 
@@ -50,8 +48,8 @@ def make(scene: str, height: float, backend: str = "auto", t_max: float = T_MAX,
          motion_steps: int = MOTION_STEPS, settle: int = SETTLE) -> Push:
     """A push task; `t_max`, `motion_steps` and `settle` shorten the horizon for quick checks."""
     h = math.pi / 2
-    low = (*VIA_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS
-    high = (*VIA_HIGH, h, t_max) * VIA_POINTS
+    low = (*kuka.VIA_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS
+    high = (*kuka.VIA_HIGH, h, t_max) * VIA_POINTS
     return Push(low, high, kuka.TABLE_LOW, kuka.TABLE_HIGH, scene=scene, height=height, backend=backend,
                 motion_steps=motion_steps, settle=settle)
 

@@ -34,11 +34,13 @@ def main() -> None:
     for name, action in SKILLS.items():
         task = registry.make(name, backend="mujoco")
         _, _, valid = task.evaluate(np.asarray([action], np.float32), None)
-        frames = task.frames(np.asarray(action, np.float32), 320, 240, every=1)
-        picks = frames[np.linspace(0, len(frames) - 1, args.frames).round().astype(int)]
+        # Render only the frames shown: one every `every` steps, the last at most a step before the end.
+        every = max(1, (task.horizon - 1) // (args.frames - 1))
+        picks = task.frames(np.asarray(action, np.float32), 320, 240, every=every)[:args.frames]
         path = os.path.join(args.out, f"filmstrip_{name}.png")
         Image.fromarray(np.concatenate(list(picks), axis=1)).save(path)
-        print(f"{path}: {len(picks)} of {len(frames)} steps (valid: {bool(np.asarray(valid)[0])})")
+        print(f"{path}: {len(picks)} frames, one every {every} of {task.horizon} steps "
+              f"(valid: {bool(np.asarray(valid)[0])})")
 
 
 if __name__ == "__main__":

@@ -28,7 +28,8 @@ def _stats(name: str, num: int) -> dict[str, float]:
     _, _, valid = jax.jit(task.evaluate)(actions, None)
     reached, fits, valid = np.asarray(plan.reached), np.asarray(plan.fits), np.asarray(valid)
     runs = np.flatnonzero(reached & fits)
-    c, model = task._rollout, kuka.load(name)
+    c = task._rollout
+    model = c.model
     state, sensors = rollout.rollout(c.model, c.datas, c.initial_state[None], np.asarray(plan.ctrl, np.float64)[runs],
                                      control_spec=int(c.control_spec))
     qvel = np.abs(state[:, :, 1 + model.nq:1 + model.nq + 7]).max(axis=1)  # [R, 7] peak joint speeds
