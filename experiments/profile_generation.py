@@ -38,7 +38,7 @@ def _median_ms(fn: Callable[[], object], repeats: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="obstacle2d")
-    parser.add_argument("--algorithm", default="qd", choices=["qd", "mqd", "random"])
+    parser.add_argument("--algorithm", default="qd", choices=["qd", "mqd", "mqd-paper", "random"])
     parser.add_argument("--grow", type=int, default=250)
     parser.add_argument("--repeats", type=int, default=200)
     args = parser.parse_args()

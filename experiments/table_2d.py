@@ -2,8 +2,8 @@
 
     python experiments/table_2d.py [--seeds 5] [--generations 250] [--out results/table_2d.md]
 
-Variants: `qd`, `mqd` (the paper's filter), `mqd-budget` (budgeted filtering,
-4x pool), `random`. Each is compiled once and run for every seed in turn
+Variants: `qd`, `mqd` (this library's default M-QD), `mqd-paper` (the paper's filter),
+`mqd-paper-budget` (budgeted filtering, 4x pool), `random`. Each is compiled once and run for every seed in turn
 (sequential runs are faster than vmapped ones on a CPU; see the README).
 Writes a markdown table with mean +- std over seeds of the final coverage and
 mean quality, the evaluations spent, the evaluations each M-QD variant needed
@@ -27,7 +27,8 @@ from mqd_jax import Config, run_mqd
 VARIANTS: dict[str, dict[str, Any]] = {
     "qd": dict(algorithm="qd"),
     "mqd": dict(algorithm="mqd"),
-    "mqd-budget": dict(algorithm="mqd", budgeted=True),
+    "mqd-paper": dict(algorithm="mqd-paper"),
+    "mqd-paper-budget": dict(algorithm="mqd-paper", budgeted=True, pool_factor=4),
     "random": dict(algorithm="random"),
 }
 

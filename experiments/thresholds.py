@@ -39,7 +39,7 @@ def main() -> None:
     parser.add_argument("--out", default="results/thresholds")
     args = parser.parse_args()
     extra = {} if args.generations is None else {"max_generations": args.generations}
-    mqd = Config.paper(args.task, algorithm="mqd", **extra)
+    mqd = Config.paper(args.task, algorithm="mqd-paper", **extra)
     start = time.perf_counter()
     _, qd = run_batch(Config.paper(args.task, algorithm="qd", **extra), seed_keys(args.seeds))
     qd_s = time.perf_counter() - start

@@ -1,10 +1,10 @@
 """mqd-jax: Model-Based Quality-Diversity search in JAX."""
 
-from mqd_jax.acquisition import Budgeted, Threshold
+from mqd_jax.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.adaptation import Adapted, adapt
 from mqd_jax.config import Config, Params
 from mqd_jax.emitters import Emitter, Evaluated, IsoLine, Proposal, Uniform
-from mqd_jax.model_emitter import ModelEmitter
+from mqd_jax.model_emitter import Fallback, ModelEmitter
 from mqd_jax.repertoire import AddStatus
 from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
 from mqd_jax.task import Task
@@ -15,8 +15,10 @@ __all__ = [
            "Budgeted",
            "Candidates",
            "Config",
+           "Diverse",
            "Emitter",
            "Evaluated",
+           "Fallback",
            "IsoLine",
            "ModelEmitter",
            "Params",

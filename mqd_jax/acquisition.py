@@ -8,19 +8,30 @@ Quality-Diversity Search"):
     predicted quality improvement qua~ = mean_i (q~ - q_nn_i)
 
 With fewer than K skills in the repertoire the means run over those there are;
-with none, both scores are +inf. A rule (`Threshold`: the paper's Algorithm 1;
-`Budgeted`: a fixed number from the top of a ranked pool) is a frozen dataclass
-with `pool_size(num)` (how many candidates it wants to choose `num` from) and
-`select`, used by `mqd_jax.model_emitter.ModelEmitter`.
+with none, both scores are +inf. `Judged` holds these with the predictions and
+the ensemble's spread. A rule is a frozen dataclass with `pool_size(num)` (how
+many candidates it wants to choose `num` from) and `select`, used by
+`mqd_jax.model_emitter.ModelEmitter`:
+
+* `Threshold`: the paper's Algorithm 1 filter;
+* `Budgeted`: a fixed number from the top of a ranked pool;
+* `Diverse`: a fixed number chosen one at a time by optimistic (UCB) gain
+  against an imagined repertoire that already holds the predicted behaviors
+  of those chosen, so one generation does not spend rollouts on near-duplicates.
+
+Ranking rules return their rows best first (`ModelEmitter`'s fallback keeps a
+prefix of them).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import TYPE_CHECKING, Protocol
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from mqd_jax import neighbours
 from mqd_jax.repertoire import Repertoire
@@ -40,6 +51,31 @@ def predicted_scores(pred_behaviors: jax.Array, pred_qualities: jax.Array, rep: 
     novelty = mean(jnp.sqrt(jnp.where(found, sq, 0.0)))
     improvement = mean(pred_qualities[:, None] - rep.qualities[jnp.maximum(idx, 0)])
     return novelty, improvement
+
+
+@struct.dataclass
+class Judged:
+    """The model's view of a pool of N candidates.
+
+    Attributes:
+      behaviors: [N, d] predicted behaviors b~ (real units).
+      qualities: [N] predicted qualities q~.
+      spread: [N] the ensemble's disagreement on the behavior: the root mean
+        square over members and axes of a member's behavior minus b~ (0 for a
+        single network).
+      distance: [N] from b~ to the nearest repertoire skill's behavior (inf if none).
+      nearest_quality: [N] that skill's quality (0 if none).
+      novelty: [N] nov~; improvement: [N] qua~ (`predicted_scores`; a rule
+        that does not read them costs nothing: XLA drops unused work).
+    """
+
+    behaviors: jax.Array
+    qualities: jax.Array
+    spread: jax.Array
+    distance: jax.Array
+    nearest_quality: jax.Array
+    novelty: jax.Array
+    improvement: jax.Array
 
 
 def passes(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, t_qua: jax.Array) -> jax.Array:
@@ -69,10 +105,10 @@ class Threshold:
     def pool_size(self, num: int) -> int:
         return num
 
-    def select(self, novelty: jax.Array, improvement: jax.Array, wanted: jax.Array, warm_up: jax.Array,
-               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
+               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept, their rollout mask [num] and how many wanted candidates were turned down."""
-        rollout = wanted & (warm_up | passes(novelty, improvement, params.t_nov, params.t_qua))
+        rollout = wanted & (warm_up | passes(judged.novelty, judged.improvement, params.t_nov, params.t_qua))
         return jnp.arange(num), rollout, (wanted & ~rollout).sum(dtype=jnp.int32)
 
 
@@ -84,27 +120,100 @@ class Budgeted:
     pool_factor: int = 4
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.pool_factor, int) and self.pool_factor >= 1):
-            raise ValueError(f"Budgeted.pool_factor={self.pool_factor!r} is invalid: expected an int >= 1")
+        _check_pool_factor(self)
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
 
-    def select(self, novelty: jax.Array, improvement: jax.Array, wanted: jax.Array, warm_up: jax.Array,
-               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """Rows [num] of the pool kept, their rollout mask [num] and how many candidates were turned down."""
-        top = jnp.where(warm_up, jnp.arange(num), ranking(novelty, improvement, params.t_nov, wanted)[:num])
-        discarded = jnp.where(warm_up, 0, novelty.shape[0] - num).astype(jnp.int32)
-        return top, wanted[top], discarded
+    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
+               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Rows [num] of the pool kept (best first), their rollout mask [num] and how many candidates were turned
+        down."""
+        top = ranking(judged.novelty, judged.improvement, params.t_nov, wanted)[:num]
+        return _after_warm_up(top, wanted, warm_up, num)
+
+
+def _after_warm_up(top: jax.Array, wanted: jax.Array, warm_up: jax.Array,
+                   num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """A ranking rule's result: its rows `top` [num], or during warm-up the pool's first num rows."""
+    rows = jnp.where(warm_up, jnp.arange(num), top)
+    discarded = jnp.where(warm_up, 0, wanted.shape[0] - num).astype(jnp.int32)
+    return rows, wanted[rows], discarded
+
+
+def _check_pool_factor(rule: object) -> None:
+    value = rule.pool_factor
+    if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        raise ValueError(f"{type(rule).__name__}.pool_factor={value!r} is invalid: expected an int >= 1")
+
+
+def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int) -> jax.Array:
+    """[num] pool rows chosen one at a time against an imagined repertoire; the first chosen first.
+
+    Each step takes, among the candidates not yet chosen, first those the
+    inner emitter wants, then those predicted to open a niche, i.e. whose
+    optimistic distance dist~ + beta * spread to the nearest behavior of the
+    repertoire and of the wanted candidates chosen so far exceeds `t_dist`,
+    by the largest such distance; then the rest by the largest predicted
+    quality improvement over that nearest behavior. NaN predictions come last.
+    """
+    b, q = judged.behaviors, judged.qualities
+    optimism = beta * judged.spread
+    finite = jnp.isfinite(b).all(axis=1) & jnp.isfinite(q) & jnp.isfinite(optimism)
+
+    def choose(carry: tuple[jax.Array, jax.Array, jax.Array], _: None) -> tuple[tuple[jax.Array, ...], jax.Array]:
+        dist, nearest_quality, free = carry
+        reach = dist + optimism
+        opens = reach > t_dist
+        value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, reach, q - nearest_quality)), -jnp.inf)
+        tier = jnp.where(free, 2 * wanted.astype(jnp.int32) + opens.astype(jnp.int32), -1)
+        best = tier == tier.max()
+        pick = jnp.argmax(jnp.where(best, value, -jnp.inf))
+        pick = jnp.where(best[pick], pick, jnp.argmax(best)).astype(jnp.int32)  # all of the tier at -inf: the first
+        # A wanted candidate is rolled out: later ones are judged against its predicted behavior too.
+        to_pick = jnp.sqrt(neighbours.sq_dists(b, b[pick][None])[:, 0])
+        closer = wanted[pick] & (to_pick < dist)
+        return (jnp.where(closer, to_pick, dist), jnp.where(closer, q[pick], nearest_quality),
+                free.at[pick].set(False)), pick
+
+    start = (judged.distance, judged.nearest_quality, jnp.ones_like(wanted))
+    _, rows = jax.lax.scan(choose, start, None, length=num, unroll=4)
+    return rows
+
+
+@dataclasses.dataclass(frozen=True)
+class Diverse:
+    """Batch-diverse optimistic ranking: of `pool_factor` x num candidates, roll out num chosen one at a time
+    (`greedy_diverse`, optimism `beta` x the ensemble's spread); during warm-up the pool's first num."""
+
+    pool_factor: int = 8
+    beta: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check_pool_factor(self)
+        if not (isinstance(self.beta, (int, float)) and not isinstance(self.beta, bool) and self.beta >= 0
+                and math.isfinite(self.beta)):
+            raise ValueError(f"Diverse.beta={self.beta!r} is invalid: expected a finite float >= 0")
+
+    def pool_size(self, num: int) -> int:
+        return num * self.pool_factor
+
+    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
+               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
+        turned down."""
+        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num)
+        return _after_warm_up(top, wanted, warm_up, num)
 
 
 class Acquisition(Protocol):
-    """What `ModelEmitter` needs of a rule (`Threshold` and `Budgeted` are two; a user's own is a third)."""
+    """What `ModelEmitter` needs of a rule (`Threshold`, `Budgeted` and `Diverse`; a user's own is another)."""
 
     def pool_size(self, num: int) -> int:
         """How many candidates the rule chooses `num` from."""
 
-    def select(self, novelty: jax.Array, improvement: jax.Array, wanted: jax.Array, warm_up: jax.Array,
-               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """From the pool's scores [N] and the inner emitter's rollout mask `wanted` [N]: the rows [num] kept, their
-        rollout mask [num] and the int32 count of candidates the model turned down."""
+    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
+               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """From the model's view of the pool (N candidates), the repertoire and the inner emitter's rollout mask
+        `wanted` [N]: the rows [num] kept (a ranking rule: best first), their rollout mask [num] and the int32
+        count of candidates the model turned down."""

@@ -10,8 +10,9 @@ revision). `save` writes a temporary file and renames it over the old one, so a
 crash leaves either the previous checkpoint or the new one, never half of one.
 `load` refuses, with a ValueError, a file that is not a checkpoint, is corrupt
 or was altered (checksum), and one written for another config, task or key.
-Files of the older formats 1 to 3 (1 and 2 without checksum; M-QD's model
-outside the emitter's state) still load.
+Files of the older formats 1 to 4 (1 and 2 without checksum; 1 to 3 with
+M-QD's model outside the emitter's state; 1 to 4 with one network where the
+model is now an ensemble) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -36,7 +37,7 @@ from mqd_jax.folders import differences, write_atomically
 from mqd_jax.provenance import provenance
 from mqd_jax.run import State, check_state, get_task, init, run_generations
 
-FORMAT = 4
+FORMAT = 5
 Metrics = dict[str, np.ndarray]
 
 
@@ -63,6 +64,23 @@ def _from_format_3(state: dict[str, Any], fresh: dict[str, Any], cfg: Config) ->
         model.update(params=old["params"], steps=old["steps"])
         emitter["evaluations"] = state["num_evaluations"]
     return {**state, "emitter": emitter}
+
+
+def _from_format_4(state: dict[str, Any], fresh: dict[str, Any], batched: bool) -> dict[str, Any]:
+    """Format 4 held one network's parameters and Adam moments; since format 5 the model is an ensemble (a
+    leading member axis, here of one member) and the model emitter's state also holds `rollouts` and
+    `fallback` (empty for the one-network presets). `fresh`: the state dict of a new run of the config."""
+    emitter = state["emitter"]
+    if not (isinstance(emitter, dict) and "model" in emitter):
+        return state
+    member_axis = 1 if batched else 0  # after a batch's [S] axis
+    grow = lambda tree: jax.tree.map(lambda x: np.expand_dims(np.asarray(x), member_axis), tree)  # noqa: E731
+    model = dict(emitter["model"])
+    adam = dict(model["opt_state"]["inner_state"]["0"])
+    adam.update(mu=grow(adam["mu"]), nu=grow(adam["nu"]))
+    inner_state = {**model["opt_state"]["inner_state"], "0": adam}
+    model.update(params=grow(model["params"]), opt_state={**model["opt_state"], "inner_state": inner_state})
+    return {**state, "emitter": {**fresh["emitter"], **emitter, "model": model}}
 
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
@@ -121,8 +139,10 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     start = (lambda k: init(k, cfg)) if key.ndim == 1 else jax.vmap(lambda k: init(k, cfg))
     template = jax.eval_shape(start, key)
     if payload["format"] < FORMAT:
-        payload["state"] = _from_format_3(payload["state"], serialization.to_state_dict(jax.device_get(start(key))),
-                                          cfg)
+        fresh = serialization.to_state_dict(jax.device_get(start(key)))
+        if payload["format"] < 4:
+            payload["state"] = _from_format_3(payload["state"], fresh, cfg)
+        payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

@@ -1,7 +1,7 @@
 """The `mqd` command line: `run` one search, `sweep` seeds, `adapt` a sweep's skills, `plot` a results folder.
 
     mqd run   [--preset paper-2d] [--<config-field> VALUE ...] [--seed 0] [--chunk 25] [--resume] [--out DIR]
-    mqd sweep [--tasks ...] [--algorithms mqd qd random] [--seeds N] [--<config-field> VALUE ...] [--out DIR]
+    mqd sweep [--tasks ...] [--algorithms mqd mqd-paper qd random] [--seeds N] [--<config-field> VALUE ...] [--out DIR]
     mqd adapt DIR [--tasks ...] [--goals 1000]
     mqd plot  DIR
     mqd render DIR [--index N | --goal X Y] [--out FILE.gif]
@@ -346,7 +346,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     sw.add_argument("--tasks", nargs="+", default=list(registry.registered_tasks()), metavar="TASK",
                     help=f"tasks to sweep: {_task_names()} (default: every registered task)")
     sw.add_argument("--algorithms", nargs="+", default=list(PRESETS), choices=PRESETS,
-                    help="default: all three")
+                    help="default: all four")
     sw.add_argument("--seeds", type=_positive, default=None,
                     help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")
     sw.add_argument("--chunk", type=_positive, default=25,

@@ -10,8 +10,9 @@ compiled run can be `jax.vmap`-ed over them (the way evosax separates `params`
 from the static config). `Config.params()` gives the defaults from the config.
 
 A config names its task (resolved through `mqd_jax.registry`) or holds a
-`Task` object, and names a preset emitter ("mqd", "qd", "random"; built by
-`mqd_jax.presets` from the config's fields) or holds any `Emitter`.
+`Task` object, and names a preset emitter ("mqd", "mqd-paper", "qd",
+"random"; built by `mqd_jax.presets` from the config's fields) or holds any
+`Emitter`.
 """
 
 from __future__ import annotations
@@ -30,7 +31,9 @@ from mqd_jax.emitters import Emitter
 from mqd_jax.task import Task
 
 # The named emitters `Config.algorithm` may give (built by `mqd_jax.presets`).
-PRESETS = ("mqd", "qd", "random")
+PRESETS = ("mqd", "mqd-paper", "qd", "random")
+# The presets with a learned model.
+MODEL_PRESETS = ("mqd", "mqd-paper")
 
 
 @struct.dataclass
@@ -100,9 +103,10 @@ class Config:
 
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
-    model fields (t_nov, t_qua, batch_size, num_batches, warmup_samples,
-    hidden_size, budgeted, pool_factor) configure the "mqd" preset; a composed
-    emitter carries its own settings.
+    model fields (batch_size, num_batches, warmup_samples, hidden_size,
+    pool_factor; "mqd": ensemble_size, optimism; "mqd-paper": t_nov, t_qua,
+    budgeted) configure the model presets; a composed emitter carries its own
+    settings.
     """
 
     task: str | Task = "obstacle2d"
@@ -133,11 +137,17 @@ class Config:
     neighbour_slack: int = 3
     # Cells per behavior-space axis of the coverage grid.
     coverage_resolution: int = 256
-    # Budgeted ranking ("mqd" only; off is the paper's threshold filter): sample
-    # `pool_factor` x population candidates, rank them with the model and
-    # evaluate exactly `population_size` of them (see acquisition.Budgeted).
+    # "mqd" (acquisition.Diverse) and budgeted "mqd-paper" choose the
+    # population from `pool_factor` x as many candidates.
+    pool_factor: int = 8
+    # "mqd": the model's ensemble members, and the weight of their spread in
+    # the optimistic distance to the nearest skill (acquisition.greedy_diverse).
+    ensemble_size: int = 4
+    optimism: float = 1.0
+    # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
+    # rank `pool_factor` x population candidates with the model and evaluate
+    # exactly `population_size` of them (see acquisition.Budgeted).
     budgeted: bool = False
-    pool_factor: int = 4
 
     def __post_init__(self) -> None:
         # numpy scalars (np.int64(10), np.float32(0.02)) become the Python values they hold, so that
@@ -155,21 +165,22 @@ class Config:
                          ("batch_size", 1), ("num_batches", 1), ("warmup_samples", 0),
                          ("hidden_size", 1), ("adaptation_steps", 0), ("capacity", 1),
                          ("archive_capacity", 1), ("neighbour_slack", 0),
-                         ("coverage_resolution", 8), ("pool_factor", 1)):
+                         ("coverage_resolution", 8), ("pool_factor", 1), ("ensemble_size", 1)):
             v = getattr(self, name)
             _check(_is_int(v) and v >= lo, name, v, f"an int >= {lo}")
         for name in ("t_dist", "learning_rate", "adaptation_step_size"):
             v = getattr(self, name)
             _check(_is_real(v) and v > 0, name, v, "a finite float > 0")
-        for name in ("t_nov", "iso_sigma", "line_sigma"):
+        for name in ("t_nov", "iso_sigma", "line_sigma", "optimism"):
             v = getattr(self, name)
             _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
         _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
         _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
-        _check(not self.budgeted or self.algorithm == "mqd", "budgeted", self.budgeted,
-               f"False unless algorithm='mqd' (it is {self.algorithm!r})")
+        _check(not self.budgeted or self.algorithm == "mqd-paper", "budgeted", self.budgeted,
+               f"False unless algorithm='mqd-paper' (it is {self.algorithm!r})")
         budget = self.max_generations * self.population_size
-        _check(self.algorithm != "mqd" or self.warmup_samples < budget, "warmup_samples", self.warmup_samples,
+        _check(self.algorithm not in MODEL_PRESETS or self.warmup_samples < budget, "warmup_samples",
+               self.warmup_samples,
                f"an int < max_generations * population_size ({budget}) for M-QD, or the model is never used")
         _check(self.population_size <= self.capacity, "population_size", self.population_size,
                f"an int <= capacity ({self.capacity})")
@@ -250,8 +261,16 @@ class Config:
 
 def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     """A config dict saved by an earlier version in today's fields: `physics_backend` "auto" is dropped (since
-    version 0.2 a robot task's backend is an option of its construction, `task_options`)."""
+    version 0.2 a robot task's backend is an option of its construction, `task_options`); before version 0.3
+    (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
+    defaulted to 4."""
     saved = dict(saved)
+    if "ensemble_size" not in saved:
+        saved.setdefault("pool_factor", 4)
+        if saved.get("algorithm") == "mqd":
+            saved["algorithm"] = "mqd-paper"
+        for name in ("ensemble_size", "optimism"):  # fields that did not exist: today's defaults
+            saved[name] = Config.__dataclass_fields__[name].default
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}

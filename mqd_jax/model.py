@@ -7,10 +7,15 @@ mapped from their bounds to [-1, 1], behaviors from the behavior box to
 the tanh outputs cover exactly the bounded spaces. `predict` maps back to real
 units and is the one function the filter and skill adaptation both use.
 
+An ensemble of E such networks (E = 1 is the paper's model) has every
+parameter with a leading [E] axis; the members are applied and trained with
+`jax.vmap`. `predict` is the members' mean; `predict_members` gives each
+member's prediction, whose spread measures the model's uncertainty.
+
 Training (`mqd_jax.model_emitter` calls it after every generation once warm-up
 is over): `num_batches` Adam steps on the mean-squared error in normalized
-units, each on `batch_size` skills drawn uniformly (with replacement) from the
-repertoire.
+units, each member on its own `batch_size` rows drawn uniformly (with
+replacement) from the training data (the repertoire, or a buffer of rollouts).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from mqd_jax.archive import Archive
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
 
@@ -44,8 +50,8 @@ class ModelState:
     """The model's parameters and optimizer state.
 
     Attributes:
-      params: Flax variables of the MLP: Dense_0 kernel [n, H], bias [H];
-        Dense_1 kernel [H, d + 1], bias [d + 1].
+      params: Flax variables of the E members' MLPs: Dense_0 kernel [E, n, H],
+        bias [E, H]; Dense_1 kernel [E, H, d + 1], bias [E, d + 1].
       opt_state: `optax.adam`'s state with its hyperparameters injected
         (`optax.inject_hyperparams`): the learning rate is a traced value.
       steps: int32, training steps taken so far.
@@ -93,34 +99,53 @@ def normalize_targets(behaviors: jax.Array, qualities: jax.Array, task: Task) ->
     return _to_unit(jnp.concatenate([behaviors, qualities[..., None]], axis=-1), *_bounds(task))
 
 
-def init(key: jax.Array, hidden_size: int, task: Task) -> ModelState:
-    """Random parameters (Flax's default initialisers) and a fresh Adam state."""
-    params = network(hidden_size, task).init(key, jnp.zeros((1, task.action_dim), jnp.float32))
+def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1) -> ModelState:
+    """Random parameters of `ensemble_size` members (Flax's default initialisers, one key each) and a fresh Adam
+    state. A single member is initialised from `key` itself."""
+    net, x = network(hidden_size, task), jnp.zeros((1, task.action_dim), jnp.float32)
+    keys = key[None] if ensemble_size == 1 else jax.random.split(key, ensemble_size)
+    params = jax.vmap(lambda k: net.init(k, x))(keys)
     return ModelState(params=params, opt_state=_OPTIMIZER.init(params), steps=jnp.int32(0))
 
 
-def predict(model: ModelState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
-    """phi in real units: actions [..., n] -> behaviors [..., d], qualities [...]."""
-    y = _network_of(model, task).apply(model.params, normalize_actions(actions, task))
+def ensemble_size(model: ModelState) -> int:
+    """E, the number of members."""
+    return model.params["params"]["Dense_0"]["bias"].shape[0]
+
+
+def predict_members(model: ModelState, actions: jax.Array, task: Task) -> jax.Array:
+    """Each member's phi in real units: actions [..., n] -> [E, ..., d + 1] (behavior, then quality)."""
+    net, x = _network_of(model, task), normalize_actions(actions, task)
+    y = jax.vmap(lambda p: net.apply(p, x))(model.params)
     low, high = _bounds(task)
-    y = low + (y + 1.0) * (high - low) / 2.0
+    return low + (y + 1.0) * (high - low) / 2.0
+
+
+def predict(model: ModelState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
+    """phi in real units, the members' mean: actions [..., n] -> behaviors [..., d], qualities [...]."""
+    y = predict_members(model, actions, task).mean(axis=0)
     return y[..., :-1], y[..., -1]
 
 
-def train(model: ModelState, key: jax.Array, rep: Repertoire, task: Task, learning_rate: jax.Array, batch_size: int,
-          num_batches: int) -> tuple[ModelState, jax.Array]:
-    """`num_batches` Adam steps at `learning_rate` on mini-batches of `batch_size` of the repertoire's skills.
+def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: Task, learning_rate: jax.Array,
+          batch_size: int, num_batches: int) -> tuple[ModelState, jax.Array]:
+    """`num_batches` Adam steps at `learning_rate`, each member on its own mini-batches of `batch_size` rows.
 
-    The repertoire must hold at least one skill (its valid entries are the
-    prefix [0, count)). Returns the new state and the mean loss over the steps.
+    `data` is a repertoire (its valid rows are the prefix [0, count)) or a
+    rollout buffer (`Archive`: the filled prefix [0, min(total, A))); it must
+    hold at least one row. Returns the new state and the mean loss over the
+    steps and members.
     """
     net = _network_of(model, task)
-    rows = jax.random.randint(key, (num_batches, batch_size), 0, rep.count)
-    inputs = normalize_actions(rep.actions, task)
-    targets = normalize_targets(rep.behaviors, rep.qualities, task)
+    filled = data.count if isinstance(data, Repertoire) else jnp.minimum(data.total, data.qualities.shape[0])
+    rows = jax.random.randint(key, (num_batches, ensemble_size(model), batch_size), 0, filled)
+    inputs = normalize_actions(data.actions, task)
+    targets = normalize_targets(data.behaviors, data.qualities, task)
 
     def loss_fn(params: Any, idx: jax.Array) -> jax.Array:
-        return ((net.apply(params, inputs[idx]) - targets[idx]) ** 2).mean()
+        # Summed over members: each member's gradient is that of its own mean-squared error.
+        member_loss = jax.vmap(lambda p, i: ((net.apply(p, inputs[i]) - targets[i]) ** 2).mean())
+        return member_loss(params, idx).sum()
 
     def step(carry: tuple[Any, optax.OptState], idx: jax.Array) -> tuple[tuple[Any, optax.OptState], jax.Array]:
         params, opt_state = carry
@@ -131,4 +156,5 @@ def train(model: ModelState, key: jax.Array, rep: Repertoire, task: Task, learni
     hyperparams = {**model.opt_state.hyperparams, "learning_rate": jnp.asarray(learning_rate, jnp.float32)}
     opt_state = model.opt_state._replace(hyperparams=hyperparams)
     (params, opt_state), losses = jax.lax.scan(step, (model.params, opt_state), rows, unroll=2)
-    return ModelState(params=params, opt_state=opt_state, steps=model.steps + num_batches), losses.mean()
+    return (ModelState(params=params, opt_state=opt_state, steps=model.steps + num_batches),
+            losses.mean() / ensemble_size(model))

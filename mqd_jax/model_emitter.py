@@ -2,13 +2,31 @@
 are worth a rollout (paper, "Model-Based Quality-Diversity Search", Algorithm 1).
 
 `ModelEmitter(inner, acquisition)` asks `inner` for a pool of candidates,
-predicts their behaviors and qualities with its model (`mqd_jax.model`), scores
-them against the repertoire and lets the acquisition rule choose
-(`mqd_jax.acquisition`: the paper's `Threshold` filter or `Budgeted` ranking).
-Until `warmup_samples` of its candidates were rolled out the rule passes the
-inner emitter's proposal through. After every generation past warm-up it trains
-the model on the repertoire. It owns the model's state and reports the model's
-metrics; any emitter can be the inner one.
+predicts their behaviors and qualities with its model (`mqd_jax.model`, one
+network or a vmapped ensemble), scores them against the repertoire and lets
+the acquisition rule choose (`mqd_jax.acquisition`: the paper's `Threshold`
+filter, `Budgeted` ranking or `Diverse` batch selection). Until
+`warmup_samples` of its candidates were rolled out the rule passes the inner
+emitter's proposal through. After every generation past warm-up it trains the
+model on the repertoire, or on a buffer of its latest rollouts. It owns the
+model's state and reports the model's metrics; any emitter can be the inner one.
+
+Two options change what the model says and how much it is trusted:
+
+* `anchoring`: "nearest" anchors a candidate's prediction at the repertoire
+  skill nearest to it in (normalized) action space, whose true outcome is
+  known: b~(a) = b(a_j) + phi(a) - phi(a_j), and likewise the quality. The
+  model then only has to predict differences between nearby actions, which
+  helps where behavior is smooth in the action and hurts across
+  discontinuities (contact). "auto" keeps an exponential average (weight
+  `ERROR_AVERAGING`) of both predictions' held-out behavior error on every
+  generation's rollouts and uses the one whose average is lower (the plain one
+  until both have one).
+* `fallback` (`Fallback`): a share of each generation's rollouts goes to the
+  model's choice and the rest to the inner emitter's own first candidates; the
+  share pursues whichever side's rollouts have recently opened new niches
+  more often (adaptive pursuit), so a model that does not
+  help costs at most the floor's share of the rollouts.
 """
 
 from __future__ import annotations
@@ -21,14 +39,73 @@ import jax.numpy as jnp
 from flax import struct
 
 from mqd_jax import acquisition, model
+from mqd_jax import archive as archive_lib
+from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.emitters import Emitter, Evaluated, Proposal
-from mqd_jax.repertoire import Repertoire
+from mqd_jax.repertoire import AddStatus, Repertoire
 from mqd_jax.task import Task
 
 if TYPE_CHECKING:
     from mqd_jax.config import Params
 
-_METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32}
+_METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
+            "opener_auc": jnp.float32}
+TRAINING_DATA = ("repertoire", "rollouts")
+ANCHORING = ("none", "nearest", "auto")
+# The weight of a generation's held-out error in anchoring="auto"'s averages.
+ERROR_AVERAGING = 0.2
+
+
+@struct.dataclass
+class FallbackState:
+    """Adaptive pursuit's state.
+
+    Attributes:
+      share: float32, the model's share of the next generation's rollouts.
+      success: [2] float32, exponential averages of the fraction of rollouts that
+        opened a niche: the model's choice, the inner emitter's (NaN before the first).
+    """
+
+    share: jax.Array
+    success: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Fallback:
+    """How far a `ModelEmitter` trusts its model: adaptive pursuit (Thierens 2005) between the model's choice
+    and the inner emitter's own candidates.
+
+    After each generation past warm-up, each side's success (the fraction of
+    its rollouts that opened a niche, `AddStatus.ADDED`: what coverage counts) enters an exponential average
+    with weight `rate`; the model's share then moves by `rate` toward
+    1 - `floor` if its average is the higher, else toward `floor`. The share
+    starts at 1/2.
+    """
+
+    floor: float = 0.1
+    rate: float = 0.2
+
+    def __post_init__(self) -> None:
+        for name, low, high in (("floor", 0.0, 0.5), ("rate", 0.0, 1.0)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high):
+                raise ValueError(f"Fallback.{name}={value!r} is invalid: expected a float in [{low}, {high}]")
+
+    def init(self) -> FallbackState:
+        return FallbackState(share=jnp.float32(0.5), success=jnp.full(2, jnp.nan, jnp.float32))
+
+    def update(self, state: FallbackState, from_model: jax.Array, evaluated: Evaluated) -> FallbackState:
+        """The state after a generation whose rows [P] `from_model` came from the model's choice."""
+        success = evaluated.status == AddStatus.ADDED
+        rolled = evaluated.status != AddStatus.SKIPPED
+        sides = jnp.stack([from_model, ~from_model]) & rolled
+        count = sides.sum(axis=1)
+        rate = (sides & success).sum(axis=1) / jnp.maximum(count, 1)
+        averaged = jnp.where(jnp.isnan(state.success), rate, (1 - self.rate) * state.success + self.rate * rate)
+        averaged = jnp.where(count > 0, averaged, state.success)
+        target = jnp.where(averaged[0] > averaged[1], 1.0 - self.floor, self.floor)
+        share = jnp.where(jnp.isnan(averaged).any(), state.share, state.share + self.rate * (target - state.share))
+        return FallbackState(share=share.astype(jnp.float32), success=averaged.astype(jnp.float32))
 
 
 @struct.dataclass
@@ -39,11 +116,20 @@ class ModelEmitterState:
       model: the forward model's parameters and optimizer state.
       inner: the inner emitter's state.
       evaluations: int32, this emitter's candidates rolled out so far (warm-up counts them).
+      rollouts: the buffer of its latest usable rollouts the model trains on
+        (`archive.Archive` of `rollout_buffer` rows), or () when it trains on
+        the repertoire.
+      fallback: `FallbackState`, or () without a fallback.
+      anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
+        plain and the anchored predictions (NaN before the first); else ().
     """
 
     model: model.ModelState
     inner: Any
     evaluations: jax.Array
+    rollouts: Any = ()
+    fallback: Any = ()
+    anchor_errors: Any = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,60 +140,141 @@ class ModelEmitter(Emitter):
       inner: the emitter whose candidates the model judges.
       acquisition: the rule that picks the candidates to roll out.
       k: the repertoire neighbours the predicted novelty and improvement average over.
-      hidden_size: the model's hidden units.
-      batch_size, num_batches: training mini-batches per generation.
+      hidden_size: the model's hidden units (per member).
+      ensemble_size: the members of the model's ensemble.
+      batch_size, num_batches: training mini-batches per generation (per member).
       warmup_samples: rollouts before the model is trained and used.
+      anchoring: "none", "nearest" (predictions anchored at the nearest repertoire skill in action space) or
+        "auto" (whichever of the two has the lower recent held-out error; see the module's doc).
+      training_data: "repertoire" (its skills, as the paper) or "rollouts" (the
+        latest `rollout_buffer` usable rollouts of this emitter, in a ring buffer).
+      rollout_buffer: the size of that buffer.
+      fallback: a `Fallback`, or None to always follow the acquisition rule.
+        Only with a ranking rule (`Budgeted`, `Diverse`), whose best rows come first.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
     train), `prediction_error` (behavior MSE in real units of the predictions
     on this generation's usable rollouts, before training on them; NaN if
-    none), and the inner emitter's.
+    none), `opener_auc` (among this generation's usable rollouts, the
+    probability that one which opened a niche had a larger predicted distance
+    to the nearest skill than one which did not; ties count 1/2; NaN without
+    both kinds), with a
+    fallback `model_share` (the share of the generation's rows from the rule: 1 during warm-up),
+    and the inner emitter's.
     """
 
     inner: Emitter
     acquisition: acquisition.Acquisition = dataclasses.field(default_factory=acquisition.Threshold)
     k: int = 5
     hidden_size: int = 32
+    ensemble_size: int = 1
     batch_size: int = 16
     num_batches: int = 500
     warmup_samples: int = 0
+    anchoring: str = "none"
+    training_data: str = "repertoire"
+    rollout_buffer: int = 4096
+    fallback: Fallback | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.inner, Emitter):
             raise ValueError(f"ModelEmitter.inner={self.inner!r} is invalid: expected an Emitter")
-        for name, lowest in (("k", 1), ("hidden_size", 1), ("batch_size", 1), ("num_batches", 1),
-                             ("warmup_samples", 0)):
+        for name, lowest in (("k", 1), ("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1),
+                             ("num_batches", 1), ("warmup_samples", 0), ("rollout_buffer", 1)):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
-        clash = set(_METRICS) & set(self.inner.metrics())
+        if self.anchoring not in ANCHORING:
+            raise ValueError(f"ModelEmitter.anchoring={self.anchoring!r} is invalid: expected one of {ANCHORING}")
+        if self.training_data not in TRAINING_DATA:
+            raise ValueError(f"ModelEmitter.training_data={self.training_data!r} is invalid: expected one of "
+                             f"{TRAINING_DATA}")
+        if self.fallback is not None and not (isinstance(self.fallback, Fallback)
+                                              and not isinstance(self.acquisition, acquisition.Threshold)):
+            raise ValueError(f"ModelEmitter.fallback={self.fallback!r} is invalid: expected None, or a Fallback "
+                             "with a ranking acquisition rule (not Threshold, whose rows are not ranked)")
+        clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
 
     def init(self, key: jax.Array, task: Task) -> ModelEmitterState:
-        return ModelEmitterState(model=model.init(key, self.hidden_size, task),
-                                 inner=self.inner.init(jax.random.fold_in(key, 1), task), evaluations=jnp.int32(0))
+        rollouts = (archive_lib.Archive.empty(self.rollout_buffer, task.action_dim, task.behavior_dim)
+                    if self.training_data == "rollouts" else ())
+        return ModelEmitterState(model=model.init(key, self.hidden_size, task, self.ensemble_size),
+                                 inner=self.inner.init(jax.random.fold_in(key, 1), task), evaluations=jnp.int32(0),
+                                 rollouts=rollouts, fallback=() if self.fallback is None else self.fallback.init(),
+                                 anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else ())
+
+    def members(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> jax.Array:
+        """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n]. A subclass may
+        predict otherwise (an experiment's oracle returns the true outcomes)."""
+        return model.predict_members(state.model, actions, task)
+
+    def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task) -> (
+            acquisition.Judged):
+        """The model's view of actions [N, n] against the repertoire (anchored as `anchoring` says)."""
+        return self._judged(state, *self._predictions(state, actions, repertoire, task), repertoire)
+
+    def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
+                repertoire: Repertoire) -> acquisition.Judged:
+        """`Judged` from the members' plain and anchored predictions [E, N, d + 1]."""
+        y = plain
+        if self.anchoring == "nearest":
+            y = anchored
+        elif self.anchoring == "auto":
+            y = jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
+        mean = y.mean(axis=0)
+        behaviors, qualities = mean[:, :-1], mean[:, -1]
+        spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
+        sq, slot = repertoire_lib.nearest(repertoire, repertoire.behaviors, behaviors)
+        nearest_quality = jnp.where(repertoire.count > 0, repertoire.qualities[slot], 0.0)
+        novelty, improvement = acquisition.predicted_scores(behaviors, qualities, repertoire, self.k)
+        return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(sq), nearest_quality, novelty, improvement)
+
+    def _predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire,
+                     task: Task) -> tuple[jax.Array, jax.Array | None]:
+        """The members' plain predictions [E, N, d + 1] and, unless `anchoring` is "none", the anchored ones."""
+        plain = self.members(state, actions, task)
+        if self.anchoring == "none":
+            return plain, None
+        units = lambda a: model.normalize_actions(a, task)  # noqa: E731
+        # Many action dimensions: distances by matrix product (an anchor need only be near, not exactly nearest).
+        _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
+        known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
+        anchored = known + plain - self.members(state, repertoire.actions[anchor], task)
+        return plain, jnp.where(repertoire.count > 0, anchored, plain)
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
         pool_size = self.acquisition.pool_size(num)
         pool = self.inner.propose(key, state.inner, repertoire, task, params, pool_size)
-        pred_behaviors, pred_qualities = model.predict(state.model, pool.actions, task)
-        novelty, improvement = acquisition.predicted_scores(pred_behaviors, pred_qualities, repertoire, self.k)
+        plain, anchored = self._predictions(state, pool.actions, repertoire, task)
+        judged = self._judged(state, plain, anchored, repertoire)
         warm_up = state.evaluations < self.warmup_samples
-        rows, rollout, discarded = self.acquisition.select(novelty, improvement, pool.rollout, warm_up, params, num)
+        rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)
+        from_model = jnp.ones(num, bool)
+        if self.fallback is not None:
+            rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
         keep = lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x  # noqa: E731
-        info = {"inner": jax.tree.map(keep, pool.info), "predicted_behaviors": pred_behaviors[rows],
-                "discarded": discarded}
+        info = {"inner": jax.tree.map(keep, pool.info), "predicted_behaviors": judged.behaviors[rows],
+                "predicted_distance": judged.distance[rows], "from_model": from_model, "discarded": discarded}
+        if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
+            plain, anchored = self._predictions(state, pool.actions[rows], repertoire, task)
+            info["both_behaviors"] = jnp.stack([plain.mean(0)[:, :-1], anchored.mean(0)[:, :-1]])
         return Proposal(pool.actions[rows], rollout, info)
 
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
                repertoire: Repertoire, task: Task, params: Params) -> tuple[ModelEmitterState, dict[str, jax.Array]]:
         evaluations = state.evaluations + proposal.rollout.sum(dtype=jnp.int32)
-        due = (evaluations >= self.warmup_samples) & (repertoire.count > 0)
+        rollouts, data = state.rollouts, repertoire
+        if self.training_data == "rollouts":
+            rollouts = data = archive_lib.push(state.rollouts, proposal.actions, evaluated.behaviors,
+                                               evaluated.qualities, evaluated.usable)
+        has_data = repertoire.count > 0 if self.training_data == "repertoire" else rollouts.total > 0
+        due = (evaluations >= self.warmup_samples) & has_data
         trained, loss = jax.lax.cond(
-            due, lambda: model.train(state.model, key, repertoire, task, params.learning_rate, self.batch_size,
+            due, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
                                      self.num_batches),
             lambda: (state.model, jnp.float32(jnp.nan)))
         inner_proposal = Proposal(proposal.actions, proposal.rollout, proposal.info["inner"])
@@ -115,15 +282,62 @@ class ModelEmitter(Emitter):
                                                  repertoire, task, params)
         metrics = {"discarded": proposal.info["discarded"], "model_loss": loss,
                    "prediction_error": _prediction_error(proposal.info["predicted_behaviors"], evaluated),
-                   **inner_metrics}
-        return ModelEmitterState(model=trained, inner=inner, evaluations=evaluations), metrics
+                   "opener_auc": opener_auc(proposal.info["predicted_distance"], evaluated), **inner_metrics}
+        fallback = state.fallback
+        if self.fallback is not None:
+            metrics["model_share"] = proposal.info["from_model"].mean(dtype=jnp.float32)
+            was_warm_up = state.evaluations < self.warmup_samples
+            fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
+                                    lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
+                                                                 evaluated))
+        anchor_errors = state.anchor_errors
+        if self.anchoring == "auto":
+            errors = jax.vmap(_prediction_error, in_axes=(0, None))(proposal.info["both_behaviors"], evaluated)
+            averaged = (1 - ERROR_AVERAGING) * anchor_errors + ERROR_AVERAGING * errors
+            averaged = jnp.where(jnp.isnan(anchor_errors), errors, averaged)
+            anchor_errors = jnp.where(jnp.isnan(errors), anchor_errors, averaged)
+        return ModelEmitterState(model=trained, inner=inner, evaluations=evaluations, rollouts=rollouts,
+                                 fallback=fallback, anchor_errors=anchor_errors), metrics
+
+    def _own_metrics(self) -> dict[str, Any]:
+        return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32})}
 
     def metrics(self) -> dict[str, Any]:
-        return {**_METRICS, **self.inner.metrics()}
+        return {**self._own_metrics(), **self.inner.metrics()}
 
     def predict(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
-        """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what skill adaptation uses)."""
+        """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what skill adaptation uses; the
+        ensemble's mean, not anchored)."""
         return model.predict(state.model, actions, task)
+
+
+def _share(rows: jax.Array, wanted: jax.Array, share: jax.Array, warm_up: jax.Array,
+           num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The fallback's rows [num]: the rule's first round(share * num) rows (all during warm-up), then the pool's
+    first rows not among them (the inner emitter's own order); their rollout mask [num] and which came from the
+    rule [num]."""
+    slots = jnp.arange(num)
+    from_model = warm_up | (slots < jnp.round(share * num))
+    taken = jnp.zeros(wanted.shape[0], bool).at[rows].set(from_model)  # a rule's rows are distinct
+    untaken_first = jnp.argsort(taken, stable=True)  # untaken rows in pool order, then the taken ones
+    fill = untaken_first[jnp.maximum(slots - from_model.sum(), 0)]
+    rows = jnp.where(from_model, rows, fill).astype(jnp.int32)
+    return rows, wanted[rows], from_model
+
+
+def opener_auc(score: jax.Array, evaluated: Evaluated) -> jax.Array:
+    """P(score of a usable rollout that opened a niche > score of one that did not), ties 1/2; NaN without both.
+
+    score [P] (the model's: its predicted distance to the nearest skill); `evaluated` of the same P rows. NaN
+    scores count as the lowest.
+    """
+    score = jnp.nan_to_num(score, nan=-jnp.inf)
+    opened = evaluated.usable & (evaluated.status == AddStatus.ADDED)
+    closed = evaluated.usable & ~opened
+    pairs = opened[:, None] & closed[None, :]
+    wins = jnp.where(score[:, None] > score[None, :], 1.0, jnp.where(score[:, None] == score[None, :], 0.5, 0.0))
+    n = pairs.sum()
+    return jnp.where(n > 0, jnp.where(pairs, wins, 0.0).sum() / jnp.maximum(n, 1), jnp.nan)
 
 
 def _prediction_error(predicted: jax.Array, evaluated: Evaluated) -> jax.Array:

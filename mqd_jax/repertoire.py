@@ -192,6 +192,30 @@ def _on_prefix(sizes: Sequence[int], needed: jax.Array, fn: Callable[..., Any], 
     return batching.switch_largest(index, [functools.partial(fn, size) for size in sizes], *operands)
 
 
+def _prefix_sizes(capacity: int, min_prefix: int) -> list[int]:
+    """The prefix sizes C / 2^j (at least `min_prefix`, at most C) that prefix work chooses from, ascending."""
+    return sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
+
+
+def nearest(rep: Repertoire, values: jax.Array, queries: jax.Array, exact: bool = True,
+            min_prefix: int = 512) -> tuple[jax.Array, jax.Array]:
+    """Squared distance [N] and slot [N] of the skill whose row of `values` [C, D] (a per-slot array: behaviors,
+    or actions in some units) is nearest to each query [N, D]; inf and slot 0 for an empty repertoire.
+
+    Searched on the smallest prefix of C / 2^j slots (at least `min_prefix`) that holds every skill, like
+    `insert`'s search: the cost follows the repertoire's size, not C. `exact=False` computes the distances
+    with a matrix product (`neighbours.sq_dists_by_product`): faster in many dimensions, nearly as exact.
+    """
+    distances = neighbours.sq_dists if exact else neighbours.sq_dists_by_product
+
+    def search(size: int, values: jax.Array, valid: jax.Array, queries: jax.Array) -> tuple[jax.Array, jax.Array]:
+        d = jnp.where(valid[:size][None], distances(queries, values[:size]), jnp.inf)
+        slot = jnp.argmin(d, axis=1)
+        return jnp.take_along_axis(d, slot[:, None], axis=1)[:, 0], slot.astype(jnp.int32)
+
+    return _on_prefix(_prefix_sizes(rep.capacity, min_prefix), rep.count, search, values, rep.valid, queries)
+
+
 def _nearest_before(num_near: int, size: int, rep: Repertoire, behaviors: jax.Array) -> tuple[jax.Array, jax.Array]:
     """[P, M] squared distances and slots of each candidate's M nearest skills, searched in the first `size` slots."""
     part = _prefix(rep, size, rep.capacity)
@@ -248,7 +272,7 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     rare branches run once for the batch (`mqd_jax.batching`).
     """
     capacity, pop = rep.capacity, behaviors.shape[0]
-    sizes = sorted({max(capacity >> j, min(min_prefix, capacity)) for j in range(capacity.bit_length())})
+    sizes = _prefix_sizes(capacity, min_prefix)
     # The actions are only written, at the slots the rule picks: they stay out of the prefix work.
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
     near_d, near_i = _on_prefix(sizes, rep.count, functools.partial(_nearest_before, min(num_near, sizes[0])), slim,

@@ -44,7 +44,9 @@ from mqd_jax.provenance import machine, provenance
 from mqd_jax.run import State, get_task
 from mqd_jax.stats import mann_whitney
 
-NAMES = {"mqd": "M-QD", "qd": "QD", "random": "RANDOM"}
+NAMES = {"mqd": "M-QD", "mqd-paper": "M-QD (paper's filter)", "qd": "QD", "random": "RANDOM"}
+# The paper's name (`Task.paper_coverage`'s key) of each preset that reproduces one of its algorithms.
+PAPER_ALGORITHM = {"mqd-paper": "mqd", "qd": "qd", "random": "random"}
 # The files a sweep folder holds (glob patterns, for `folders.claim`), and those made from them.
 FILES = ("*_*.json", "*_*.npz", "*_mqd.msgpack", "adaptation.json")
 DERIVED = ("table1.md", "adaptation.md", "fig2_*.png", "fig3_adaptation_error.png", "fig4_adaptation_steps.png")
@@ -302,7 +304,8 @@ def _p_value(by: dict[str, Runs], a: str, b: str) -> str:
 
 
 def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
-    """Markdown: Table I (final coverage, the paper's layout, the paper's values beside ours), the mean-quality
+    """Markdown: Table I (final coverage, the paper's layout, the paper's values beside our runs of its
+    algorithms: "mqd-paper", "qd", "random"), the mean-quality
     table, and per task the evaluations, wall times and two-sided Mann-Whitney U p-values on final coverage."""
     algs = [a for a in PRESETS if any(a in r for r in runs.values())]
     seeds = sorted({len(r.keys) for by in runs.values() for r in by.values()})
@@ -314,8 +317,9 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
         return "| " + " | ".join(columns) + " |"
 
     def coverage(task: str, a: str, r: Runs) -> str:
-        # The paper's value only beside runs made with the paper's settings (Table II).
-        paper = get_task(r.cfg).paper_coverage.get(a) if r.cfg == Config.paper(task, algorithm=a) else None
+        # The paper's value only beside runs of its algorithms made with its settings (Table II).
+        paper = (get_task(r.cfg).paper_coverage.get(PAPER_ALGORITHM[a])
+                 if a in PAPER_ALGORITHM and r.cfg == Config.paper(task, algorithm=a) else None)
         return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "")
 
     head = [row("task", *(NAMES[a] for a in algs)), "|---" * (len(algs) + 1) + "|"]

@@ -80,11 +80,35 @@ def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.load(str(path), CFG, KEY)
     payload = serialization.msgpack_restore(data)
     path.write_bytes(serialization.msgpack_serialize({**payload, "format": checkpoint.FORMAT + 1}))
-    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 to 4"):
+    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 to 5"):
         checkpoint.load(str(path), CFG, KEY)
     path.write_bytes(serialization.msgpack_serialize({**payload, "sha256": "0" * 64}))
     with pytest.raises(ValueError, match="checksum does not match"):
         checkpoint.load(str(path), CFG, KEY)
+
+
+PAPER = dataclasses.replace(CFG, algorithm="mqd-paper", pool_factor=4)  # before version 0.3 the default was 4
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_paper():
+    return run_mqd(KEY, PAPER)
+
+
+def _as_format_4(body):
+    """A format-5 checkpoint body of the paper's filter as format 4 wrote it: the preset named "mqd", no
+    `ensemble_size` or `optimism` in the config; one network without a member axis; no `rollouts`,
+    `fallback` or `anchor_errors` in the model emitter's state."""
+    config = {k: v for k, v in body["config"].items() if k not in ("ensemble_size", "optimism")}
+    config.update(algorithm="mqd")
+    emitter = {k: v for k, v in body["state"]["emitter"].items() if k not in ("rollouts", "fallback", "anchor_errors")}
+    model = dict(emitter["model"])
+    squeeze = lambda tree: jax.tree.map(lambda x: x[0], tree)  # noqa: E731
+    adam = dict(model["opt_state"]["inner_state"]["0"])
+    adam.update(mu=squeeze(adam["mu"]), nu=squeeze(adam["nu"]))
+    model.update(params=squeeze(model["params"]),
+                 opt_state={**model["opt_state"], "inner_state": {**model["opt_state"]["inner_state"], "0": adam}})
+    return {**body, "config": config, "state": {**body["state"], "emitter": {**emitter, "model": model}}}
 
 
 def _as_format_3(body):
@@ -98,25 +122,37 @@ def _as_format_3(body):
     return {**body, "state": state, "config": {**body["config"], "physics_backend": "auto"}}
 
 
-def test_checkpoints_of_formats_1_to_3_still_load(tmp_path, uninterrupted):
-    """Formats 1-3 kept M-QD's model outside the emitter's state; format 1 also the coverage bounds as arrays."""
-    path = tmp_path / "run.ckpt"
-    checkpoint.save(str(path), *uninterrupted, CFG, KEY)
-    body = _as_format_3(serialization.msgpack_restore(serialization.msgpack_restore(path.read_bytes())["body"]))
+def _write(path, body, version):
     packed = serialization.msgpack_serialize(body)
-    path.write_bytes(serialization.msgpack_serialize({"format": 3, "sha256": hashlib.sha256(packed).hexdigest(),
+    path.write_bytes(serialization.msgpack_serialize({"format": version, "sha256": hashlib.sha256(packed).hexdigest(),
                                                       "body": packed}))
-    state, metrics = checkpoint.load(str(path), CFG, KEY)
-    assert_trees_equal(state, uninterrupted[0])
-    assert_trees_equal(metrics, uninterrupted[1])
+
+
+def test_checkpoints_of_formats_1_to_4_still_load(tmp_path, uninterrupted_paper):
+    """Format 4 held one network, and its "mqd" was the paper's filter ("mqd-paper" now); formats 1-3 kept M-QD's
+    model outside the emitter's state; format 1 also the coverage bounds as arrays."""
+    path = tmp_path / "run.ckpt"
+    checkpoint.save(str(path), *uninterrupted_paper, PAPER, KEY)
+    body = _as_format_4(serialization.msgpack_restore(serialization.msgpack_restore(path.read_bytes())["body"]))
+    _write(path, body, 4)
+    with pytest.raises(ValueError, match="algorithm: saved 'mqd-paper', now 'mqd'"):
+        checkpoint.load(str(path), CFG, KEY)
+    state, metrics = checkpoint.load(str(path), PAPER, KEY)
+    assert_trees_equal(state, uninterrupted_paper[0])
+    assert_trees_equal(metrics, uninterrupted_paper[1])
+    body = _as_format_3(body)
+    _write(path, body, 3)
+    state, metrics = checkpoint.load(str(path), PAPER, KEY)
+    assert_trees_equal(state, uninterrupted_paper[0])
+    assert_trees_equal(metrics, uninterrupted_paper[1])
     coverage = {**body["state"]["coverage"], "low": np.zeros(2, np.float32), "high": np.ones(2, np.float32)}
     old = {**body, "format": 1, "state": {**body["state"], "coverage": coverage}}
     path.write_bytes(serialization.msgpack_serialize(old))
-    state, metrics = checkpoint.load(str(path), CFG, KEY)
-    assert_trees_equal(state, uninterrupted[0])
+    state, metrics = checkpoint.load(str(path), PAPER, KEY)
+    assert_trees_equal(state, uninterrupted_paper[0])
     path.write_bytes(serialization.msgpack_serialize({**old, "format": 2}))  # the arrays are not part of format 2
     with pytest.raises(ValueError, match="does not fit this config"):
-        checkpoint.load(str(path), CFG, KEY)
+        checkpoint.load(str(path), PAPER, KEY)
 
 
 def test_a_crash_while_saving_keeps_the_previous_checkpoint(tmp_path, uninterrupted, monkeypatch):

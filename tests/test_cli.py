@@ -59,10 +59,10 @@ def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
 def test_every_config_field_has_a_flag_and_presets_apply():
     parser = argparse.ArgumentParser()
     cli._add_config_flags(parser)
-    args = parser.parse_args(["--preset", "paper-robot", "--t-nov", "0.05", "--budgeted", "--algorithm", "mqd",
+    args = parser.parse_args(["--preset", "paper-robot", "--t-nov", "0.05", "--budgeted", "--algorithm", "mqd-paper",
                               "--population", "50"])
     cfg = cli._config(args)
-    assert cfg == Config.paper_robot(t_nov=0.05, budgeted=True, algorithm="mqd", population_size=50)
+    assert cfg == Config.paper_robot(t_nov=0.05, budgeted=True, algorithm="mqd-paper", population_size=50)
     assert cli._config(parser.parse_args([])) == Config()
     assert cli._config(parser.parse_args([]), defaults={"max_generations": 100}) == Config(max_generations=100)
     # `mqd sweep`'s preset "auto" is the paper's column for each task.

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from mqd_jax import Budgeted, Config, Emitter, IsoLine, ModelEmitter, Proposal, Threshold, Uniform, presets, run_mqd
+from mqd_jax.acquisition import Judged
+from mqd_jax.repertoire import Repertoire
 from mqd_jax.run import METRICS
 
 
@@ -21,7 +23,7 @@ def test_importing_mqd_jax_and_its_modules_leaves_the_tasks_out():
 
 
 def test_presets_are_these_compositions():
-    cfg = Config(algorithm="mqd", k=4, hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5,
+    cfg = Config(algorithm="mqd-paper", k=4, hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5,
                  max_generations=2)
     assert presets.emitter(dataclasses.replace(cfg, algorithm="random")) == Uniform()
     assert presets.emitter(dataclasses.replace(cfg, algorithm="qd")) == IsoLine()
@@ -33,13 +35,13 @@ def test_presets_are_these_compositions():
     assert presets.emitter(dataclasses.replace(cfg, algorithm=emitter)) is emitter
 
 
-def test_a_composed_model_emitter_runs_bit_identical_to_the_mqd_preset(tiny):
-    preset = tiny(algorithm="mqd", warmup_samples=48, num_batches=10, max_generations=6, t_nov=0.1, t_qua=0.1)
+def test_a_composed_model_emitter_runs_bit_identical_to_the_mqd_paper_preset(tiny):
+    preset = tiny(algorithm="mqd-paper", warmup_samples=48, num_batches=10, max_generations=6, t_nov=0.1, t_qua=0.1)
     composed = dataclasses.replace(preset, algorithm=ModelEmitter(
         IsoLine(), Threshold(), k=preset.k, hidden_size=preset.hidden_size, batch_size=preset.batch_size,
         num_batches=preset.num_batches, warmup_samples=preset.warmup_samples))
     (s1, m1), (s2, m2) = (run_mqd(jax.random.PRNGKey(1), c) for c in (preset, composed))
-    assert set(m1) == set(m2) == set(METRICS) | {"discarded", "model_loss", "prediction_error"}
+    assert set(m1) == set(m2) == set(METRICS) | {"discarded", "model_loss", "prediction_error", "opener_auc"}
     for name in m1:
         np.testing.assert_array_equal(m1[name], m2[name], err_msg=name)
     for a, b in zip(jax.tree.leaves(s1), jax.tree.leaves(s2), strict=True):
@@ -57,14 +59,16 @@ def test_acquisition_rules_respect_the_inner_emitters_rollout_mask_by_hand():
     improvement = jnp.array([0.0, 0.5, 0.0, -0.1, 0.0, 0.2])
     wanted = jnp.array([True, True, False, True, True, True])
     params = Config().params().replace(t_nov=jnp.float32(0.1), t_qua=jnp.float32(0.1))
-    rows, rollout, discarded = Threshold().select(novelty, improvement, wanted, jnp.bool_(False), params, 6)
+    judged = Judged(jnp.zeros((6, 2)), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), novelty, improvement)
+    rep = Repertoire.empty(4, 1, 2, 4)
+    rows, rollout, discarded = Threshold().select(judged, rep, wanted, jnp.bool_(False), params, 6)
     # Passing: 0 and 4 by novelty, 1 and 5 by improvement; 2 passes too but the inner emitter did not want it.
     np.testing.assert_array_equal(rows, np.arange(6))
     np.testing.assert_array_equal(rollout, [True, True, False, False, True, True])
     assert int(discarded) == 1  # 3: wanted, turned down
-    rows, rollout, _ = Threshold().select(novelty, improvement, wanted, jnp.bool_(True), params, 6)
+    rows, rollout, _ = Threshold().select(judged, rep, wanted, jnp.bool_(True), params, 6)
     np.testing.assert_array_equal(rollout, wanted)  # warm-up: the inner emitter's choice
-    rows, rollout, discarded = Budgeted(2).select(novelty, improvement, wanted, jnp.bool_(False), params, 3)
+    rows, rollout, discarded = Budgeted(2).select(judged, rep, wanted, jnp.bool_(False), params, 3)
     # Wanted first; of those, novel (> 0.1) by novelty: 0 (0.5), 4 (0.3); then by improvement: 1 (0.5).
     np.testing.assert_array_equal(rows, [0, 4, 1])
     assert bool(rollout.all()) and int(discarded) == 3
@@ -99,7 +103,8 @@ def test_bad_compositions_are_refused_at_construction():
         ModelEmitter("qd")
     with pytest.raises(ValueError, match=r"ModelEmitter\.hidden_size=0"):
         ModelEmitter(IsoLine(), hidden_size=0)
-    with pytest.raises(ValueError, match=r"metrics \['discarded', 'model_loss', 'prediction_error'\] clash"):
+    clash = r"metrics \['discarded', 'model_loss', 'opener_auc', 'prediction_error'\] clash"
+    with pytest.raises(ValueError, match=clash):
         ModelEmitter(ModelEmitter(IsoLine()))
     with pytest.raises(ValueError, match=r"Budgeted\.pool_factor=0"):
         Budgeted(0)

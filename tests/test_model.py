@@ -64,9 +64,9 @@ def test_budgeted_order_by_hand():
 def test_predict_maps_tanh_outputs_to_real_units(linear_task):
     ms = model.init(jax.random.PRNGKey(0), 4, linear_task)
     want = np.array([-0.5, 0.25, 0.8], np.float32)  # normalized behavior x, y and quality
-    p = ms.params["params"]
+    p = ms.params["params"]  # one member: a leading axis of 1
     params = {"params": {"Dense_0": p["Dense_0"], "Dense_1": {"kernel": jnp.zeros_like(p["Dense_1"]["kernel"]),
-                                                              "bias": jnp.arctanh(jnp.asarray(want))}}}
+                                                              "bias": jnp.arctanh(jnp.asarray(want))[None]}}}
     b, q = model.predict(ms.replace(params=params), jnp.zeros((3, 3)), linear_task)
     # Behavior box [0, 1]^2 and the default quality range (0, 1): x = (y + 1) / 2.
     np.testing.assert_allclose(b, np.broadcast_to([0.25, 0.625], (3, 2)), rtol=1e-5)
@@ -101,7 +101,7 @@ def run(cfg):
 
 def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
     qd = tiny(task="obstacle2d", algorithm="qd")
-    mqd = dataclasses.replace(qd, algorithm="mqd", t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
+    mqd = dataclasses.replace(qd, algorithm="mqd-paper", t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
     (s_qd, m_qd), (s_mqd, m_mqd) = run(qd), run(mqd)
     assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.emitter.model.steps) == 20 * 9
     for field in ("repertoire", "archive", "coverage", "key", "generation", "num_evaluations"):
@@ -125,14 +125,14 @@ def check_masked_rows_left_no_trace(cfg, state, m):
 
 
 def test_discarded_candidates_are_never_evaluated_counted_or_inserted(tiny):
-    cfg = tiny(task=POISONED, algorithm="mqd", warmup_samples=64, num_batches=50, t_nov=0.05, t_qua=0.05)
+    cfg = tiny(task=POISONED, algorithm="mqd-paper", warmup_samples=64, num_batches=50, t_nov=0.05, t_qua=0.05)
     state, m = run(cfg)
     evaluations, discarded = check_masked_rows_left_no_trace(cfg, state, m)
     assert discarded.sum() > 0 and evaluations[4:].min() < cfg.population_size
 
 
 def test_budgeted_mode_evaluates_exactly_the_population(tiny):
-    cfg = tiny(task=POISONED, algorithm="mqd", warmup_samples=64, num_batches=50, budgeted=True,
+    cfg = tiny(task=POISONED, algorithm="mqd-paper", warmup_samples=64, num_batches=50, budgeted=True,
                pool_factor=3)
     state, m = run(cfg)
     evaluations, discarded = check_masked_rows_left_no_trace(cfg, state, m)
@@ -142,7 +142,7 @@ def test_budgeted_mode_evaluates_exactly_the_population(tiny):
 
 def test_warm_up_runs_as_qd_and_does_not_train(tiny):
     # A filter that turns down everything once the model is in use.
-    cfg = tiny(task="obstacle2d", algorithm="mqd", warmup_samples=70, num_batches=10, t_nov=1e3, t_qua=1e3)
+    cfg = tiny(task="obstacle2d", algorithm="mqd-paper", warmup_samples=70, num_batches=10, t_nov=1e3, t_qua=1e3)
     state, m = run(cfg)
     before = np.concatenate([[0], np.asarray(m["num_evaluations"])[:-1]])
     warm = before < cfg.warmup_samples
@@ -160,7 +160,7 @@ def test_warm_up_runs_as_qd_and_does_not_train(tiny):
 
 @pytest.mark.parametrize("kw, field", [
     (dict(algorithm="qd", budgeted=True), "budgeted"),
-    (dict(algorithm="mqd", budgeted=1), "budgeted"),
+    (dict(algorithm="mqd-paper", budgeted=1), "budgeted"),
     (dict(algorithm="mqd", warmup_samples=1200, max_generations=12, population_size=100), "warmup_samples"),
     (dict(pool_factor=0), "pool_factor"),
 ])
@@ -178,11 +178,12 @@ def test_a_training_step_is_one_optax_adam_step_at_the_traced_learning_rate(line
     key, rate = jax.random.PRNGKey(2), 0.05
     trained, loss = model.train(ms, key, rep, linear_task, jnp.float32(rate), 16, 1)
     # The same mini-batch, by hand, through optax.adam.
-    rows = jax.random.randint(key, (1, 16), 0, rep.count)[0]
+    rows = jax.random.randint(key, (1, 1, 16), 0, rep.count)[0, 0]
     x = model.normalize_actions(actions[rows], linear_task)
     y = model.normalize_targets(b[rows], q[rows], linear_task)
     net = model.network(8, linear_task)
-    want_loss, grads = jax.value_and_grad(lambda p: ((net.apply(p, x) - y) ** 2).mean())(ms.params)
+    member = lambda p: ((net.apply(jax.tree.map(lambda v: v[0], p), x) - y) ** 2).mean()  # noqa: E731
+    want_loss, grads = jax.value_and_grad(member)(ms.params)
     adam = optax.adam(rate)
     updates, _ = adam.update(grads, adam.init(ms.params), ms.params)
     want = optax.apply_updates(ms.params, updates)

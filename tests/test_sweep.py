@@ -33,7 +33,7 @@ def test_chunks_do_not_change_a_batch_and_runs_keep_their_key():
 
 
 def test_threshold_grid_pairs_every_setting_with_the_same_seeds():
-    cfg = Config(algorithm="mqd", **TINY)
+    cfg = Config(algorithm="mqd-paper", **TINY)
     keys, params, pairs = threshold_grid(cfg, [0.0, 2.0], [0.0, 2.0], seeds=2)
     assert pairs == [(0.0, 0.0), (0.0, 2.0), (2.0, 0.0), (2.0, 2.0)]
     np.testing.assert_array_equal(keys, np.tile(seed_keys(2), (4, 1)))
@@ -212,7 +212,7 @@ def test_table_one_shows_the_papers_values_beside_its_settings_only():
         keys, count, behaviors = np.zeros((2, 2), np.uint32), np.ones(2, int), np.zeros((2, 1, 2))
         return results.Runs(cfg, keys, 1.0, "here", metrics, count, behaviors)
 
-    by_alg = {"mqd": runs(Config.paper("obstacle2d", algorithm="mqd")),
+    by_alg = {"mqd-paper": runs(Config.paper("obstacle2d", algorithm="mqd-paper")),
               "qd": runs(Config.paper("obstacle2d", algorithm="qd", max_generations=30))}
     table = "\n".join(results.tables({"obstacle2d": by_alg}))
     assert "| obstacle2d | 0.500 +- 0.000 (paper 0.971 +- 0.018) | 0.500 +- 0.000 |" in table

@@ -1,0 +1,219 @@
+"""Rollouts to QD: how many of QD's rollouts M-QD needs to reach QD's final coverage, per composition.
+
+    python experiments/sample_efficiency.py [--tasks obstacle2d object2d] [--seeds 10]
+        [--compositions qd mqd-paper mqd ...] [--out docs/data/sample_efficiency_2d.md]
+    python experiments/sample_efficiency.py --sweep DIR [DIR ...] [--out ...]   (runs of `mqd sweep`)
+
+Every composition runs `--seeds` seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the
+task's Table II settings, vmapped in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
+presets `mqd sweep` wrote to those folders instead of running (the robot tasks, whose runs take long).
+
+For each task and composition, from the mean over seeds of coverage [G] and rollouts spent [G]:
+  * rollouts to QD: the rollouts at which the mean coverage first reaches QD's final mean
+    coverage, as a fraction of QD's rollouts ("> x" if it never does: x = its own total);
+  * coverage after 25%, 50% and 100% of QD's rollouts (linear between generations);
+  * mean quality of the repertoire after QD's rollouts;
+  * ms per generation (the batch's wall time after compiling, per generation) and its ratio to QD's
+    in the same invocation (not with --sweep: its runs were timed in other processes).
+The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
+of the model's predictions: the ceiling of what a better model could buy.
+
+`--tasks arm` is a task none of this was tuned on, defined here: the classic QD benchmark of a
+planar arm with 10 joints (angles in [-pi/2, pi/2], links 0.05 long from the centre of the unit
+square); behavior = the tip's position, quality = minus the angles' standard deviation.
+
+Writes a markdown table (`--out`), the mean curves as JSON beside it and a figure of coverage
+against rollouts per task (`--figure`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import report
+
+from mqd_jax import Config, IsoLine, ModelEmitter, presets, registry, results
+from mqd_jax.acquisition import Budgeted
+from mqd_jax.model_emitter import ModelEmitterState
+from mqd_jax.sweep import run_batch, seed_keys
+from mqd_jax.task import Task
+
+
+@dataclasses.dataclass(frozen=True)
+class Oracle(ModelEmitter):
+    """`ModelEmitter` whose "members" are the task's true outcomes (one member; NaN where invalid).
+
+    For deterministic tasks with cheap rollouts only: it rolls out its whole pool inside the
+    generation to judge it, so it is a reference, not a method."""
+
+    def members(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> jax.Array:
+        behaviors, qualities, valid = task.evaluate(actions, jax.random.PRNGKey(0))
+        outcome = jnp.concatenate([behaviors, qualities[:, None]], axis=-1).astype(jnp.float32)
+        return jnp.where(valid[:, None], outcome, jnp.nan)[None]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlanarArm(Task):
+    """A planar arm of n joints in the unit square: behavior = tip position, quality = -std of the angles."""
+
+    quality_range = (-1.6, 0.0)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        n = actions.shape[1]
+        heading = jnp.cumsum(actions, axis=1)
+        tip = 0.5 + 0.5 / n * jnp.stack([jnp.cos(heading).sum(1), jnp.sin(heading).sum(1)], axis=1)
+        return tip, -jnp.std(actions, axis=1), jnp.ones(actions.shape[0], bool)
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(points - 0.5, axis=-1) <= 0.5
+
+
+def make_arm(joints: int = 10) -> PlanarArm:
+    return PlanarArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
+
+
+def _replaced(**changes: Any) -> Callable[[Config], Any]:
+    """The "mqd" preset's emitter of a config, with some fields changed."""
+    return lambda cfg: dataclasses.replace(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")), **changes)
+
+
+# name -> the config's algorithm (a preset's name or an emitter built from the config).
+COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
+    "qd": lambda cfg: "qd",
+    "mqd-paper": lambda cfg: "mqd-paper",
+    "mqd-paper-budgeted": lambda cfg: ModelEmitter(IsoLine(), Budgeted(4), k=cfg.k, hidden_size=cfg.hidden_size,
+                                                   warmup_samples=cfg.warmup_samples),
+    "mqd": lambda cfg: "mqd",
+    "mqd-no-fallback": _replaced(fallback=None),
+    "mqd-not-anchored": _replaced(anchoring="none"),
+    "mqd-always-anchored": _replaced(anchoring="nearest"),
+    "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
+    "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
+    "mqd-rollout-buffer": _replaced(training_data="rollouts"),
+    "mqd-short-training": _replaced(batch_size=64, num_batches=100),
+    "oracle": lambda cfg: Oracle(**{f.name: getattr(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")),
+                                                    f.name) for f in dataclasses.fields(ModelEmitter)}
+                                 | dict(anchoring="none", fallback=None, ensemble_size=1, num_batches=1)),
+}
+FRACTIONS = (0.25, 0.5, 1.0)
+
+
+def _run(task: str, name: str, seeds: int, generations: int | None) -> dict[str, Any]:
+    cfg = Config.paper(task)
+    cfg = dataclasses.replace(cfg, algorithm=COMPOSITIONS[name](cfg),
+                              **({} if generations is None else {"max_generations": generations}))
+    compiled = {}
+    start = time.perf_counter()
+    _, metrics = run_batch(cfg, seed_keys(seeds), on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
+    ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
+    print(f"{task} {name}: {time.perf_counter() - start:.0f} s", flush=True)
+    return _curves(metrics) | {"ms_per_generation": ms}
+
+
+def _curves(metrics: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Mean curves over seeds, and each seed's final coverage."""
+    return {"rollouts": np.mean(metrics["num_evaluations"], 0).tolist(),
+            "coverage": np.mean(metrics["coverage"], 0).tolist(),
+            "mean_quality": np.mean(metrics["mean_quality"], 0).tolist(),
+            "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist()}
+
+
+def rollouts_to_reach(rollouts: np.ndarray, coverage: np.ndarray, target: float) -> float | None:
+    """The rollouts [G] at the first generation whose coverage [G] reaches `target`, or None."""
+    reached = np.asarray(coverage) >= target
+    return float(np.asarray(rollouts)[np.argmax(reached)]) if reached.any() else None
+
+
+def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> list[str]:
+    budget, target = qd["rollouts"][-1], qd["coverage"][-1]
+    reach = rollouts_to_reach(curve["rollouts"], curve["coverage"], target)
+    to_qd = f"{reach / budget:.2f}" if reach is not None else f"> {curve['rollouts'][-1] / budget:.2f}"
+    at = [f"{np.interp(f * budget, curve['rollouts'], curve['coverage']):.3f}"
+          + ("*" if f * budget > curve["rollouts"][-1] + 0.5 else "") for f in FRACTIONS]
+    quality = np.interp(budget, curve["rollouts"], curve["mean_quality"])
+    final = np.asarray(curve["final_coverage"])
+    timing = [f"{curve['ms_per_generation']:.1f}", f"{curve['ms_per_generation'] / qd['ms_per_generation']:.2f}"] \
+        if timed else ["", ""]
+    return [name, to_qd, *at, f"{quality:.3f}", f"{final.mean():.3f} +- {final.std():.3f}",
+            f"{curve['rollouts'][-1]:.0f}", *timing]
+
+
+def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str:
+    plt = report.pyplot()
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), squeeze=False)
+    for ax, (task, by) in zip(axes[0], curves.items(), strict=True):
+        for name, c in by.items():
+            ax.plot(c["rollouts"], c["coverage"], label=name, lw=2.2 if name == "mqd" else 1.2,
+                    ls="--" if name == "oracle" else "-")
+        ax.axhline(by["qd"]["coverage"][-1], color="0.6", lw=0.8, ls=":")
+        ax.set(title=task, xlabel="rollouts", ylabel="coverage")
+    axes[0][-1].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--generations", type=int, default=None, help="override Table II's (quick checks)")
+    parser.add_argument("--compositions", nargs="+", default=list(COMPOSITIONS), choices=list(COMPOSITIONS))
+    parser.add_argument("--sweep", nargs="+", default=None,
+                        help="read the presets of `mqd sweep` folders instead of running")
+    parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
+    parser.add_argument("--figure", default="docs/figures/sample_efficiency_2d.png")
+    args = parser.parse_args()
+    if "arm" in args.tasks and not registry.is_task("arm"):
+        registry.register("arm", make_arm)
+
+    curves: dict[str, dict[str, dict[str, Any]]] = {}
+    if args.sweep:
+        loaded = [results.load_runs(folder) for folder in args.sweep]
+        for runs in loaded:
+            curves.update({task: {alg: _curves(r.metrics) for alg, r in by.items()} for task, by in runs.items()})
+        seeds = {len(r.keys) for runs in loaded for by in runs.values() for r in by.values()}
+        command = f"python experiments/sample_efficiency.py --sweep {' '.join(args.sweep)}"
+    else:
+        for task in args.tasks:
+            robot = registry.make(task).table_ii_column == "robot"
+            names = ["qd"] + [n for n in args.compositions if n != "qd" and not (robot and n == "oracle")]
+            curves[task] = {name: _run(task, name, args.seeds, args.generations) for name in names}
+        seeds = {args.seeds}
+        command = (f"python experiments/sample_efficiency.py --tasks {' '.join(args.tasks)} --seeds {args.seeds} "
+                   f"--compositions {' '.join(args.compositions)}"
+                   + (f" --generations {args.generations}" if args.generations else ""))
+    missing = [t for t, by in curves.items() if "qd" not in by]
+    if missing:
+        raise SystemExit(f"no QD runs of {missing}: rollouts to QD needs them")
+
+    lines = [f"Command: `{command}`", "", f"Machine: {report.machine()}; seeds: {sorted(seeds)}.", "",
+             "Rollouts to QD = fraction of QD's rollouts at which the mean coverage first reaches QD's final mean "
+             "coverage. Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
+             "final value). Quality = the repertoire's mean quality after QD's rollouts."
+             + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's."),
+             ""]
+    header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality", "final coverage",
+              "rollouts", "ms/gen", "x QD"]
+    for task, by in curves.items():
+        lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        lines += ["| " + " | ".join(_row(n, c, by["qd"], not args.sweep)) + " |" for n, c in by.items()]
+        lines.append("")
+    report.write(lines, args.out)
+    with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
+        json.dump(curves, f)
+    print(_figure(curves, args.figure))
+
+
+if __name__ == "__main__":
+    main()

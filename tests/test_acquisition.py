@@ -1,0 +1,267 @@
+"""The parts of this library's M-QD: the ensemble, anchored predictions, batch-diverse acquisition, the fallback
+and the model's metrics, each against a hand-computed case or a brute-force reference."""
+
+import dataclasses
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from mqd_jax import Config, IsoLine, ModelEmitter, model, presets, run_mqd
+from mqd_jax import repertoire as repertoire_lib
+from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse
+from mqd_jax.emitters import Evaluated
+from mqd_jax.model_emitter import Fallback, FallbackState, _share, opener_auc
+from mqd_jax.repertoire import AddStatus, Repertoire
+
+
+def repertoire_of(behaviors, qualities, actions=None, capacity=8):
+    b = np.asarray(behaviors, np.float32)
+    n = len(b)
+    a = np.zeros((n, 3), np.float32) if actions is None else np.asarray(actions, np.float32)
+    rep = Repertoire.empty(capacity, a.shape[1], b.shape[1], 4)
+    return rep.replace(actions=rep.actions.at[:n].set(a), behaviors=rep.behaviors.at[:n].set(b),
+                       qualities=rep.qualities.at[:n].set(qualities), valid=jnp.arange(capacity) < n,
+                       count=jnp.int32(n))
+
+
+def judged(behaviors, qualities, rep, spread=None):
+    """A Judged pool whose distance to the nearest skill is computed by brute force."""
+    b = np.asarray(behaviors, np.float32)
+    n = b.shape[0]
+    skills = np.asarray(rep.behaviors[:int(rep.count)])
+    d = np.sqrt(((b[:, None] - skills[None]) ** 2).sum(-1))
+    return Judged(jnp.asarray(b), jnp.asarray(qualities, jnp.float32), jnp.zeros(n) if spread is None else
+                  jnp.asarray(spread), jnp.asarray(d.min(1)), jnp.asarray(rep.qualities)[d.argmin(1)], jnp.zeros(n),
+                  jnp.zeros(n))
+
+
+def test_ensemble_members_train_as_independent_networks(linear_task):
+    """An ensemble of 3 trained together equals each member trained alone on its own mini-batches."""
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (64, 3), minval=-1.0, maxval=1.0)
+    b, q, _ = linear_task.evaluate(actions, None)
+    rep = repertoire_of(b, q, actions, capacity=64)
+    ensemble = model.init(jax.random.PRNGKey(0), 8, linear_task, ensemble_size=3)
+    key = jax.random.PRNGKey(2)
+    trained, _ = model.train(ensemble, key, rep, linear_task, jnp.float32(0.01), 4, 5)
+    rows = jax.random.randint(key, (5, 3, 4), 0, 64)
+    net = model.network(8, linear_task)
+    x, y = model.normalize_actions(actions, linear_task), model.normalize_targets(b, q, linear_task)
+    adam = optax.adam(0.01)
+    for e in range(3):
+        params = jax.tree.map(lambda v: v[e], ensemble.params)  # noqa: B023
+        state = adam.init(params)
+        for step in range(5):
+            idx = rows[step, e]
+            grads = jax.grad(lambda p: ((net.apply(p, x[idx]) - y[idx]) ** 2).mean())(params)  # noqa: B023
+            updates, state = adam.update(grads, state, params)
+            params = optax.apply_updates(params, updates)
+        for got, want in zip(jax.tree.leaves(jax.tree.map(lambda v: v[e], trained.params)),  # noqa: B023
+                             jax.tree.leaves(params), strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    # The ensemble's prediction is the members' mean.
+    members = model.predict_members(trained, actions[:5], linear_task)
+    mean_b, mean_q = model.predict(trained, actions[:5], linear_task)
+    np.testing.assert_allclose(mean_b, members[..., :-1].mean(0), rtol=1e-6)
+    np.testing.assert_allclose(mean_q, members[:, :, -1].mean(0), rtol=1e-6)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Known(ModelEmitter):
+    """Members with known predictions: member e says (a0 + e, a1 - e, a2) for action a."""
+
+    def members(self, state, actions, task):
+        shift = jnp.arange(2.0)[:, None, None] * jnp.array([1.0, -1.0, 0.0])
+        return actions[None] + shift
+
+
+def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
+    rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
+    pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
+    emitter = _Known(IsoLine(), Diverse(), anchoring="nearest", k=1)
+    got = emitter.judge(None, pool, rep, linear_task)
+    for i, a in enumerate(np.asarray(pool)):
+        j = int(np.argmin([np.sum((a - r) ** 2) for r in np.asarray(rep.actions[:2])]))  # action box [-1, 1]: x1
+        members = [np.array([a[0] + e, a[1] - e, a[2]]) - np.array([rep.actions[j, 0] + e, rep.actions[j, 1] - e,
+                                                                   rep.actions[j, 2]]) for e in range(2)]
+        known = np.array([*rep.behaviors[j], rep.qualities[j]])
+        mean = np.mean([known + m for m in members], axis=0)
+        np.testing.assert_allclose(got.behaviors[i], mean[:2], rtol=1e-6)
+        np.testing.assert_allclose(got.qualities[i], mean[2], rtol=1e-6)
+    # Anchored differences cancel the members' offsets: they agree (spread 0); not anchored they disagree by 1/2
+    # on each behavior axis around the mean.
+    np.testing.assert_allclose(got.spread, 0.0, atol=1e-6)
+    plain = dataclasses.replace(emitter, anchoring="none").judge(None, pool, rep, linear_task)
+    np.testing.assert_allclose(plain.behaviors, np.asarray(pool)[:, :2] + [0.5, -0.5], rtol=1e-6)
+    np.testing.assert_allclose(plain.spread, 0.5, rtol=1e-6)
+    # An empty repertoire has nothing to anchor at: the plain prediction.
+    empty = emitter.judge(None, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
+    np.testing.assert_allclose(empty.behaviors, plain.behaviors)
+
+
+def test_greedy_diverse_by_hand():
+    rep = repertoire_of([[0.0, 0.0]], [0.5])
+    # 0 and 1 are near-duplicates far from the skill; 2 is farther in another direction but less far than 0;
+    # 3 sits on the skill with a better quality; 4 on it with a worse one.
+    pool = judged([[1.0, 0.0], [0.99, 0.01], [0.0, 0.8], [0.0, 0.0], [0.0, 0.001]], [0.1, 0.1, 0.1, 0.9, 0.2], rep)
+    wanted = jnp.ones(5, bool)
+    rows = greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 5)
+    # 0 opens the farthest niche; then 1 is within 0.05 of 0's imagined skill, so 2 goes first; then the rest by
+    # predicted improvement over the nearest imagined or real skill: 3 (+0.4 over the skill), 1 (0.0 over 0's
+    # imagined skill), 4 (-0.3).
+    np.testing.assert_array_equal(rows, [0, 2, 3, 1, 4])
+    # Budgeted ranking has no imagined skills: both duplicates before 2.
+    ranked = Budgeted(1).select(pool.replace(novelty=jnp.array([1.0, 0.99, 0.8, 0.0, 0.001]),
+                                             improvement=jnp.array([-0.4, -0.4, -0.4, 0.4, -0.3])),
+                                rep, wanted, jnp.bool_(False), Config().params().replace(t_nov=jnp.float32(0.05)),
+                                5)[0]
+    np.testing.assert_array_equal(ranked[:3], [0, 1, 2])
+    # Optimism: a spread of 0.2 lifts 4 (0.001 from the skill) above t_dist, ahead of the improvers.
+    rows = greedy_diverse(pool.replace(spread=jnp.array([0, 0, 0, 0, 0.2])), wanted, jnp.float32(0.05), 1.0, 5)
+    np.testing.assert_array_equal(rows, [0, 2, 4, 3, 1])
+    # Wanted candidates first; unwanted ones do not enter the imagined repertoire.
+    rows = greedy_diverse(pool, jnp.array([False, True, True, True, True]), jnp.float32(0.05), 0.0, 5)
+    np.testing.assert_array_equal(rows, [1, 2, 3, 4, 0])
+    # NaN predictions come last (even with a high predicted quality).
+    nan = pool.replace(behaviors=pool.behaviors.at[0].set(jnp.nan), qualities=pool.qualities.at[0].set(0.95),
+                       distance=pool.distance.at[0].set(jnp.nan))
+    assert int(greedy_diverse(nan, wanted, jnp.float32(0.05), 0.0, 5)[-1]) == 0
+
+
+def test_diverse_selects_num_distinct_rows_and_passes_warm_up_through():
+    rep = repertoire_of([[0.5, 0.5]], [0.5])
+    pool = judged(jax.random.uniform(jax.random.PRNGKey(0), (40, 2)), jax.random.uniform(jax.random.PRNGKey(1), (40,)),
+                  rep)
+    params = Config().params()
+    rows, rollout, discarded = Diverse(4).select(pool, rep, jnp.ones(40, bool), jnp.bool_(False), params, 10)
+    assert len(set(np.asarray(rows).tolist())) == 10 and bool(rollout.all()) and int(discarded) == 30
+    rows, rollout, discarded = Diverse(4).select(pool, rep, jnp.ones(40, bool), jnp.bool_(True), params, 10)
+    np.testing.assert_array_equal(rows, np.arange(10))
+    assert int(discarded) == 0
+
+
+@pytest.mark.parametrize("kw, field", [(dict(pool_factor=0), "pool_factor"), (dict(beta=-1.0), "beta"),
+                                       (dict(beta=float("nan")), "beta")])
+def test_diverse_is_validated(kw, field):
+    with pytest.raises(ValueError, match=f"Diverse.{field}="):
+        Diverse(**kw)
+
+
+def test_fallback_shares_by_hand():
+    rows = jnp.array([5, 2, 7, 0])  # the rule's choice, best first, from a pool of 8
+    wanted = jnp.array([True, True, False, True, True, True, True, True])
+    got_rows, rollout, from_model = _share(rows, wanted, jnp.float32(0.5), jnp.bool_(False), 4)
+    # 2 from the rule (5, 2), then the pool's first rows not among them (0, 1).
+    np.testing.assert_array_equal(got_rows, [5, 2, 0, 1])
+    np.testing.assert_array_equal(from_model, [True, True, False, False])
+    np.testing.assert_array_equal(rollout, wanted[np.array([5, 2, 0, 1])])
+    got_rows, _, from_model = _share(rows, wanted, jnp.float32(0.5), jnp.bool_(True), 4)
+    np.testing.assert_array_equal(got_rows, rows)  # warm-up: the rule's rows (its own warm-up choice)
+
+
+def test_fallback_pursues_the_side_that_opens_more_niches():
+    fallback = Fallback(floor=0.1, rate=0.5)
+    state = fallback.init()
+    added, rejected = int(AddStatus.ADDED), int(AddStatus.REJECTED)
+    from_model = jnp.array([True, True, False, False])
+    status = jnp.array([added, added, rejected, added])
+    ev = Evaluated(jnp.zeros((4, 2)), jnp.zeros(4), jnp.ones(4, bool), status)
+    state = fallback.update(state, from_model, ev)
+    # Rates: model 2/2, inner 1/2; first averages are the rates; the share moves half way to 0.9.
+    np.testing.assert_allclose(state.success, [1.0, 0.5])
+    assert float(state.share) == pytest.approx(0.7)
+    worse = ev.replace(status=jnp.array([rejected, rejected, added, added]))
+    state = fallback.update(state, from_model, worse)
+    np.testing.assert_allclose(state.success, [0.5, 0.75])  # 0.5 * old + 0.5 * (0, 1)
+    assert float(state.share) == pytest.approx(0.7 + 0.5 * (0.1 - 0.7))
+    # A side with no rollouts keeps its average.
+    skipped = ev.replace(status=jnp.array([0, 0, added, added]))
+    assert float(fallback.update(state, from_model, skipped).success[0]) == pytest.approx(0.5)
+    for kw in (dict(floor=0.6), dict(rate=1.5), dict(floor=-0.1)):
+        with pytest.raises(ValueError, match=r"Fallback\."):
+            Fallback(**kw)
+    with pytest.raises(ValueError, match=r"ModelEmitter\.fallback="):
+        ModelEmitter(IsoLine(), Threshold(), fallback=Fallback())
+    assert isinstance(Fallback().init(), FallbackState)
+
+
+def test_opener_auc_by_brute_force():
+    rng = np.random.default_rng(0)
+    novelty = jnp.asarray(np.round(rng.uniform(size=12), 1), jnp.float32)  # rounded: ties happen
+    status = jnp.asarray(rng.choice([1, 2, 3], size=12), jnp.int32)
+    usable = jnp.asarray(rng.uniform(size=12) < 0.8)
+    got = float(opener_auc(novelty, Evaluated(jnp.zeros((12, 2)), jnp.zeros(12), usable, status)))
+    pos = [float(novelty[i]) for i in range(12) if usable[i] and status[i] == AddStatus.ADDED]
+    neg = [float(novelty[i]) for i in range(12) if usable[i] and status[i] != AddStatus.ADDED]
+    want = np.mean([1.0 if p > n else 0.5 if p == n else 0.0 for p, n in itertools.product(pos, neg)])
+    assert got == pytest.approx(want)
+    none = Evaluated(jnp.zeros((12, 2)), jnp.zeros(12), usable, jnp.full(12, 3, jnp.int32))
+    assert np.isnan(float(opener_auc(novelty, none)))
+
+
+def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(tiny):
+    cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5)
+    assert presets.emitter(cfg) == ModelEmitter(
+        IsoLine(), Diverse(3, 0.5), k=cfg.k, hidden_size=cfg.hidden_size, ensemble_size=2,
+        batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", fallback=Fallback())
+    state, m = run_mqd(jax.random.PRNGKey(0), cfg)
+    pop = cfg.population_size
+    np.testing.assert_array_equal(m["evaluations"], pop)
+    warm = np.concatenate([[0], np.asarray(m["num_evaluations"])[:-1]]) < cfg.warmup_samples
+    np.testing.assert_array_equal(m["discarded"], np.where(warm, 0, 2 * pop))
+    share = np.asarray(m["model_share"])
+    np.testing.assert_array_equal(share[warm], 1.0)  # warm-up: the inner emitter's candidates, all "the rule's"
+    assert np.all((share[~warm] >= 0.1 - 1e-6) & (share[~warm] <= 0.9 + 1e-6))
+    assert state.emitter.model.params["params"]["Dense_0"]["bias"].shape[0] == 2
+
+
+def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_only_them(linear_task):
+    emitter = ModelEmitter(IsoLine(), Diverse(2), num_batches=3, training_data="rollouts", rollout_buffer=8)
+    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    rep = Repertoire.empty(16, 3, 2, 4)
+    params = Config().params()
+    for step in range(2):  # two generations of 6 candidates, the last of each unusable
+        actions = jnp.full((6, 3), step * 0.1) + jnp.arange(6.0)[:, None] * 0.01
+        b, q, _ = linear_task.evaluate(actions, None)
+        usable = jnp.arange(6) < 5
+        proposal = emitter.propose(jax.random.PRNGKey(step), state, rep, linear_task, params, 6)
+        proposal = proposal.replace(actions=actions, rollout=jnp.ones(6, bool))
+        status = jnp.where(usable, int(AddStatus.ADDED), int(AddStatus.SKIPPED))
+        state, _ = emitter.update(jax.random.PRNGKey(9), state, proposal, Evaluated(b, q, usable, status), rep,
+                                  linear_task, params)
+    buffer = state.rollouts
+    assert int(buffer.total) == 10  # 5 usable a generation; the ring of 8 keeps the latest 8
+    want = np.concatenate([np.asarray(jnp.arange(5.0) * 0.01) + s * 0.1 for s in range(2)])[-8:]
+    got = np.asarray(buffer.actions[(np.arange(10, 18)) % 8, 0])  # oldest first
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    # The model trained on the buffer (from the first generation: no warm-up), 3 steps a generation.
+    assert int(state.model.steps) == 6
+    with pytest.raises(ValueError, match=r"ModelEmitter\.training_data="):
+        ModelEmitter(IsoLine(), training_data="archive")
+
+
+def test_configs_saved_before_version_0_3_name_the_papers_filter():
+    old = {k: v for k, v in Config(algorithm="mqd-paper", pool_factor=4).to_dict().items()
+           if k not in ("ensemble_size", "optimism")}
+    assert Config.from_dict({**old, "algorithm": "mqd"}) == Config(algorithm="mqd-paper", pool_factor=4)
+    del old["pool_factor"]
+    assert Config.from_dict({**old, "algorithm": "mqd"}).pool_factor == 4  # the default then
+
+
+@pytest.mark.parametrize("exact", [True, False])
+def test_nearest_skill_search_matches_brute_force(exact):
+    rng = np.random.default_rng(1)
+    count, capacity = 700, 2048  # a prefix of 1024 slots holds them
+    values = rng.uniform(-1, 1, (capacity, 6)).astype(np.float32)
+    rep = Repertoire.empty(capacity, 6, 2, 4).replace(actions=jnp.asarray(values), valid=jnp.arange(capacity) < count,
+                                                       count=jnp.int32(count))
+    queries = rng.uniform(-1, 1, (50, 6)).astype(np.float32)
+    sq, slot = repertoire_lib.nearest(rep, rep.actions, jnp.asarray(queries), exact=exact)
+    d = ((queries[:, None] - values[None, :count]) ** 2).sum(-1)
+    np.testing.assert_array_equal(slot, d.argmin(1))
+    np.testing.assert_allclose(sq, d.min(1), rtol=1e-4, atol=1e-5)
+    empty_sq, _ = repertoire_lib.nearest(Repertoire.empty(64, 6, 2, 4), rep.actions[:64], jnp.asarray(queries))
+    assert np.all(np.isinf(empty_sq))
