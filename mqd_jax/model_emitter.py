@@ -101,8 +101,7 @@ class Fallback:
         sides = jnp.stack([from_model, ~from_model]) & rolled
         count = sides.sum(axis=1)
         rate = (sides & success).sum(axis=1) / jnp.maximum(count, 1)
-        averaged = jnp.where(jnp.isnan(state.success), rate, (1 - self.rate) * state.success + self.rate * rate)
-        averaged = jnp.where(count > 0, averaged, state.success)
+        averaged = running_average(state.success, rate, self.rate, count > 0)
         target = jnp.where(averaged[0] > averaged[1], 1.0 - self.floor, self.floor)
         share = jnp.where(jnp.isnan(averaged).any(), state.share, state.share + self.rate * (target - state.share))
         return FallbackState(share=share.astype(jnp.float32), success=averaged.astype(jnp.float32))
@@ -293,9 +292,7 @@ class ModelEmitter(Emitter):
         anchor_errors = state.anchor_errors
         if self.anchoring == "auto":
             errors = jax.vmap(_prediction_error, in_axes=(0, None))(proposal.info["both_behaviors"], evaluated)
-            averaged = (1 - ERROR_AVERAGING) * anchor_errors + ERROR_AVERAGING * errors
-            averaged = jnp.where(jnp.isnan(anchor_errors), errors, averaged)
-            anchor_errors = jnp.where(jnp.isnan(errors), anchor_errors, averaged)
+            anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
         return ModelEmitterState(model=trained, inner=inner, evaluations=evaluations, rollouts=rollouts,
                                  fallback=fallback, anchor_errors=anchor_errors), metrics
 
@@ -309,6 +306,13 @@ class ModelEmitter(Emitter):
         """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what skill adaptation uses; the
         ensemble's mean, not anchored)."""
         return model.predict(state.model, actions, task)
+
+
+def running_average(average: jax.Array, value: jax.Array, weight: float, seen: jax.Array) -> jax.Array:
+    """An exponential average after one more value: (1 - weight) * average + weight * value where `seen`;
+    the value itself where the average is still NaN (none yet); the average unchanged where not `seen`."""
+    updated = jnp.where(jnp.isnan(average), value, (1 - weight) * average + weight * value)
+    return jnp.where(seen, updated, average)
 
 
 def _share(rows: jax.Array, wanted: jax.Array, share: jax.Array, warm_up: jax.Array,
