@@ -25,8 +25,8 @@ def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_pat
 
 
 def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch, tiny_flags):
-    argv = ["run", *tiny_flags, "--generations", "4", "--chunk", "2", "--algorithm", "mqd", "--warmup-samples", "8",
-            "--num-batches", "2", "--out", str(tmp_path)]
+    argv = ["run", *tiny_flags, "--generations", "4", "--chunk", "2", "--algorithm", "mqd-paper",
+            "--warmup-samples", "8", "--num-batches", "2", "--out", str(tmp_path)]
     chunk = cli._Progress.chunk
 
     def interrupt_after_first(self, done, m):
@@ -47,7 +47,7 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
     metrics = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
     last = [line for line in out.splitlines() if line.startswith("generation")][-1]
     assert last.startswith("generation    4/4") and f"discarded {sum(metrics['discarded']):6d}" in last
-    _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="mqd", max_generations=4, population_size=8,
+    _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="mqd-paper", max_generations=4, population_size=8,
                                                      capacity=64, warmup_samples=8, num_batches=2))
     np.testing.assert_array_equal(metrics["coverage"], whole["coverage"])
 
