@@ -86,7 +86,12 @@ def _replaced(**changes: Any) -> Callable[[Config], Any]:
     return lambda cfg: dataclasses.replace(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")), **changes)
 
 
-# name -> the config's algorithm (a preset's name or an emitter built from the config).
+def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], Config]:
+    """A composition run with some of the config's traced settings changed (the learning rate, say)."""
+    return lambda cfg: dataclasses.replace(cfg, algorithm=build(cfg), **changes)
+
+
+# name -> the config's algorithm (a preset's name or an emitter built from the config), or a whole config.
 COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "qd": lambda cfg: "qd",
     "mqd-paper": lambda cfg: "mqd-paper",
@@ -100,6 +105,12 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-short-training": _replaced(batch_size=64, num_batches=100),
+    "mqd-half-training": _replaced(num_batches=250),
+    "mqd-wide-batches": _replaced(batch_size=64, num_batches=125),
+    "mqd-wide-batches-lr2": _with(_replaced(batch_size=64, num_batches=125), learning_rate=2e-3),
+    "mqd-wide-batches-lr4": _with(_replaced(batch_size=64, num_batches=125), learning_rate=4e-3),
+    "mqd-half-training-lr2": _with(_replaced(num_batches=250), learning_rate=2e-3),
+    "mqd-lr2": _with(lambda cfg: "mqd", learning_rate=2e-3),
     "oracle": lambda cfg: Oracle(**{f.name: getattr(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")),
                                                     f.name) for f in dataclasses.fields(ModelEmitter)}
                                  | dict(anchoring="none", fallback=None, ensemble_size=1, num_batches=1)),
@@ -108,9 +119,9 @@ FRACTIONS = (0.25, 0.5, 1.0)
 
 
 def _run(task: str, name: str, seeds: int, generations: int | None) -> dict[str, Any]:
-    cfg = Config.paper(task)
-    cfg = dataclasses.replace(cfg, algorithm=COMPOSITIONS[name](cfg),
-                              **({} if generations is None else {"max_generations": generations}))
+    cfg = Config.paper(task, **({} if generations is None else {"max_generations": generations}))
+    composed = COMPOSITIONS[name](cfg)
+    cfg = composed if isinstance(composed, Config) else dataclasses.replace(cfg, algorithm=composed)
     compiled = {}
     start = time.perf_counter()
     _, metrics = run_batch(cfg, seed_keys(seeds), on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))

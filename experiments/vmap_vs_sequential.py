@@ -20,7 +20,8 @@ import jax
 import numpy as np
 import report
 
-from mqd_jax import Config, run_mqd
+from mqd_jax import Config
+from mqd_jax.run import _run_mqd
 from mqd_jax.sweep import run_batch, seed_keys
 
 
@@ -38,12 +39,13 @@ def main() -> None:
              "|---|---|---|---|---|---|"]
     for alg in args.algorithms:
         cfg = Config.paper_2d(task=args.task, algorithm=alg)
-        one = run_mqd.lower(keys[0], cfg).compile()
+        params = cfg.params()
+        one = _run_mqd.lower(keys[0], cfg, params).compile()
         run_batch(cfg, keys)  # compiles
         seq_s, vm_s = [], []
         for _ in range(args.repeats):  # alternating, so that a slow spell of the machine hits both
             start = time.perf_counter()
-            seq = [float(jax.block_until_ready(one(k))[1]["coverage"][-1]) for k in keys]
+            seq = [float(jax.block_until_ready(one(k, params))[1]["coverage"][-1]) for k in keys]
             seq_s.append(time.perf_counter() - start)
             start = time.perf_counter()
             vm = run_batch(cfg, keys)[1]["coverage"][:, -1]

@@ -259,8 +259,7 @@ class ModelEmitter(Emitter):
         info = {"inner": jax.tree.map(keep, pool.info), "predicted_behaviors": judged.behaviors[rows],
                 "predicted_distance": judged.distance[rows], "from_model": from_model, "discarded": discarded}
         if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
-            plain, anchored = self._predictions(state, pool.actions[rows], repertoire, task)
-            info["both_behaviors"] = jnp.stack([plain.mean(0)[:, :-1], anchored.mean(0)[:, :-1]])
+            info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
         return Proposal(pool.actions[rows], rollout, info)
 
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
