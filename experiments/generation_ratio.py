@@ -1,0 +1,74 @@
+"""Time of one jitted generation of several configs, as ratios to QD's, measured in turns.
+
+    python experiments/generation_ratio.py [--task obstacle2d] [--configs mqd mqd:ensemble_size=1 ...]
+
+Each config ("PRESET" or "PRESET:FIELD=VALUE,FIELD=VALUE", fields of `Config`)
+grows a repertoire for `--grow` generations (paper 2D settings), then its
+generation is timed from that state: `--rounds` rounds, each taking the median
+of `--calls` calls of every config in turn, so that a slow spell of the
+machine hits all of them; a config's time is its fastest round's median. QD is
+always measured and is the baseline of the ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+
+import jax
+import report
+
+from mqd_jax import Config, init
+from mqd_jax.run import generation, run_generations
+
+
+def parse(spec: str, task: str) -> Config:
+    """A config from "PRESET" or "PRESET:FIELD=VALUE,...", the values' types those of `Config`'s defaults."""
+    preset, _, changes = spec.partition(":")
+    cfg = Config.paper_2d(task=task, algorithm=preset)
+    fields = {f.name for f in dataclasses.fields(Config)}
+    for change in filter(None, changes.split(",")):
+        name, _, value = change.partition("=")
+        if name not in fields:
+            raise SystemExit(f"{spec!r}: {name!r} is not a Config field")
+        cfg = dataclasses.replace(cfg, **{name: type(getattr(cfg, name))(value)})
+    return cfg
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="obstacle2d")
+    parser.add_argument("--configs", nargs="+", default=["mqd", "mqd-paper"])
+    parser.add_argument("--grow", type=int, default=250)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--calls", type=int, default=20)
+    args = parser.parse_args()
+    grow = jax.jit(run_generations, static_argnums=(1, 3))
+    timed = {}
+    for spec in ["qd", *args.configs]:
+        cfg = parse(spec, args.task)
+        params = cfg.params()
+        state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
+        step = jax.jit(lambda s, cfg=cfg, params=params: generation(s, cfg, params))
+        jax.block_until_ready(step(state))
+        timed[spec] = (step, state, [])
+    for _ in range(args.rounds):
+        for step, state, rounds in timed.values():
+            calls = []
+            for _ in range(args.calls):
+                start = time.perf_counter()
+                jax.block_until_ready(step(state))
+                calls.append(time.perf_counter() - start)
+            rounds.append(statistics.median(calls) * 1e3)
+    qd = min(timed["qd"][2])
+    print(f"{args.task}, paper 2D settings, after {args.grow} generations; {report.machine()}; fastest of "
+          f"{args.rounds} rounds' medians of {args.calls} calls.\n")
+    print("| config | ms per generation | x QD |\n|---|---|---|")
+    for spec, (_, _, rounds) in timed.items():
+        print(f"| {spec} | {min(rounds):.2f} | {min(rounds) / qd:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
