@@ -2,7 +2,7 @@
 
     python experiments/sample_efficiency.py [--tasks obstacle2d object2d] [--seeds 10]
         [--compositions qd mqd-paper mqd ...] [--out docs/data/sample_efficiency_2d.md]
-    python experiments/sample_efficiency.py --sweep DIR [DIR ...] [--out ...]   (runs of `mqd sweep`)
+    python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--out ...]   (runs of `mqd sweep`)
 
 Every composition runs `--seeds` seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the
 task's Table II settings, vmapped in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
@@ -181,7 +181,8 @@ def main() -> None:
     parser.add_argument("--generations", type=int, default=None, help="override Table II's (quick checks)")
     parser.add_argument("--compositions", nargs="+", default=list(COMPOSITIONS), choices=list(COMPOSITIONS))
     parser.add_argument("--sweep", nargs="+", default=None,
-                        help="read the presets of `mqd sweep` folders instead of running")
+                        help="read the presets of `mqd sweep` folders instead of running; DIR=SUFFIX names "
+                        "that folder's runs PRESET-SUFFIX (a variant beside the same presets in another folder)")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
     parser.add_argument("--figure", default="docs/figures/sample_efficiency_2d.png")
     args = parser.parse_args()
@@ -190,9 +191,12 @@ def main() -> None:
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
     if args.sweep:
-        loaded = [results.load_runs(folder) for folder in args.sweep]
-        for runs in loaded:
-            curves.update({task: {alg: _curves(r.metrics) for alg, r in by.items()} for task, by in runs.items()})
+        folders = [spec.partition("=") for spec in args.sweep]
+        loaded = [results.load_runs(folder) for folder, _, _ in folders]
+        for (_, _, suffix), runs in zip(folders, loaded, strict=True):
+            for task, by in runs.items():
+                curves.setdefault(task, {}).update(
+                    {alg + (f"-{suffix}" if suffix else ""): _curves(r.metrics) for alg, r in by.items()})
         seeds = {len(r.keys) for runs in loaded for by in runs.values() for r in by.values()}
         command = f"python experiments/sample_efficiency.py --sweep {' '.join(args.sweep)}"
     else:
