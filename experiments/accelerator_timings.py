@@ -15,7 +15,6 @@ the whole Table I is `time mqd sweep --out results/paper`.
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import jax
@@ -28,13 +27,7 @@ from mqd_jax.sweep import run_batch, seed_keys
 def ms_per_generation(cfg: Config) -> float:
     """ms per generation of `run_mqd` on `cfg`: compiled by a first call, then the median of 3 runs."""
     key = jax.random.PRNGKey(0)
-    jax.block_until_ready(run_mqd(key, cfg))
-    times = []
-    for _ in range(3):
-        start = time.perf_counter()
-        jax.block_until_ready(run_mqd(key, cfg))
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) / cfg.max_generations * 1e3
+    return report.median_ms(lambda: run_mqd(key, cfg), 3) / cfg.max_generations
 
 
 def _sweep_seconds(cfg: Config, seeds: int) -> tuple[float, float]:

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import statistics
-import time
 
 import jax
 import report
@@ -52,16 +50,10 @@ def main() -> None:
         params = cfg.params()
         state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
         step = jax.jit(lambda s, cfg=cfg, params=params: generation(s, cfg, params))
-        jax.block_until_ready(step(state))
         timed[spec] = (step, state, [])
     for _ in range(args.rounds):
         for step, state, rounds in timed.values():
-            calls = []
-            for _ in range(args.calls):
-                start = time.perf_counter()
-                jax.block_until_ready(step(state))
-                calls.append(time.perf_counter() - start)
-            rounds.append(statistics.median(calls) * 1e3)
+            rounds.append(report.median_ms(lambda step=step, state=state: step(state), args.calls))
     qd = min(timed["qd"][2])
     print(f"{args.task}, paper 2D settings, after {args.grow} generations; {report.machine()}; fastest of "
           f"{args.rounds} rounds' medians of {args.calls} calls.\n")

@@ -13,9 +13,6 @@ Stages timed alone do not add up exactly to the fused generation.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
-from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -23,16 +20,6 @@ import report
 
 from mqd_jax import Config, ModelEmitter, coverage, init, model, presets, repertoire
 from mqd_jax.run import _NUM_NEAR, ask, generation, get_task, run_generations
-
-
-def _median_ms(fn: Callable[[], object], repeats: int) -> float:
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
 
 
 def main() -> None:
@@ -67,7 +54,7 @@ def main() -> None:
           f"generations (capacity {cfg.capacity}); {report.machine()}; median of {args.repeats} calls.\n")
     print("| stage | ms |\n|---|---|")
     for name, fn in stages.items():
-        print(f"| {name} | {_median_ms(lambda f=fn: f(state), args.repeats):.3f} |", flush=True)
+        print(f"| {name} | {report.median_ms(lambda f=fn: f(state), args.repeats):.3f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -2,16 +2,32 @@
 
 from __future__ import annotations
 
+import statistics
+import time
+from collections.abc import Callable
+
+import jax
 import numpy as np
 
 from mqd_jax.plots import pyplot
 from mqd_jax.provenance import machine
 from mqd_jax.results import write_markdown as write
 
-__all__ = ["coverage_at", "machine", "pyplot", "write"]
+__all__ = ["coverage_at", "machine", "median_ms", "pyplot", "write"]
 
 
 def coverage_at(num_evaluations: np.ndarray, coverage: np.ndarray, evaluations: float) -> np.ndarray:
     """[S] each run's coverage once `evaluations` evaluations were spent, from per-generation
     num_evaluations [S, G] and coverage [S, G] (linear between generations)."""
     return np.array([np.interp(evaluations, e, c) for e, c in zip(num_evaluations, coverage, strict=True)])
+
+
+def median_ms(fn: Callable[[], object], repeats: int) -> float:
+    """The median wall time in ms of `repeats` calls of `fn` (each waited for), after one untimed call."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3

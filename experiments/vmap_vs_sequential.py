@@ -20,8 +20,7 @@ import jax
 import numpy as np
 import report
 
-from mqd_jax import Config
-from mqd_jax.run import _run_mqd
+from mqd_jax import Config, run_mqd
 from mqd_jax.sweep import run_batch, seed_keys
 
 
@@ -40,7 +39,7 @@ def main() -> None:
     for alg in args.algorithms:
         cfg = Config.paper_2d(task=args.task, algorithm=alg)
         params = cfg.params()
-        one = _run_mqd.lower(keys[0], cfg, params).compile()
+        one = jax.jit(run_mqd, static_argnames="cfg").lower(keys[0], cfg, params).compile()
         run_batch(cfg, keys)  # compiles
         seq_s, vm_s = [], []
         for _ in range(args.repeats):  # alternating, so that a slow spell of the machine hits both
