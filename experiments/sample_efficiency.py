@@ -106,6 +106,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-not-anchored": _replaced(anchoring="none"),
     "mqd-always-anchored": _replaced(anchoring="nearest"),
     "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
+    "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-short-training": _replaced(batch_size=64, num_batches=100),

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from mqd_jax import neighbours
+from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.repertoire import Repertoire
 
 if TYPE_CHECKING:
@@ -43,13 +44,18 @@ if TYPE_CHECKING:
 def predicted_scores(pred_behaviors: jax.Array, pred_qualities: jax.Array, rep: Repertoire,
                      k: int) -> tuple[jax.Array, jax.Array]:
     """nov~ [P] and qua~ [P] of predictions pred_behaviors [P, d], pred_qualities [P]."""
-    d = jnp.where(rep.valid[None], neighbours.sq_dists(pred_behaviors, rep.behaviors), jnp.inf)
-    sq, idx = neighbours.k_smallest(d, k)
-    found = jnp.isfinite(sq)
+    return scores_of_neighbours(*repertoire_lib.k_nearest(rep, pred_behaviors, k), pred_qualities, rep)
+
+
+def scores_of_neighbours(sq: jax.Array, slots: jax.Array, pred_qualities: jax.Array,
+                         rep: Repertoire) -> tuple[jax.Array, jax.Array]:
+    """nov~ [P] and qua~ [P] from each prediction's K nearest skills (`repertoire.k_nearest`: squared distances
+    [P, K], slots [P, K], -1 where missing) and its predicted quality [P]."""
+    found = slots >= 0
     n = found.sum(1)
     mean = lambda x: jnp.where(n > 0, jnp.where(found, x, 0.0).sum(1) / jnp.maximum(n, 1), jnp.inf)  # noqa: E731
     novelty = mean(jnp.sqrt(jnp.where(found, sq, 0.0)))
-    improvement = mean(pred_qualities[:, None] - rep.qualities[jnp.maximum(idx, 0)])
+    improvement = mean(pred_qualities[:, None] - rep.qualities[jnp.maximum(slots, 0)])
     return novelty, improvement
 
 

@@ -140,9 +140,10 @@ class Config:
     # "mqd" (acquisition.Diverse) and budgeted "mqd-paper" choose the
     # population from `pool_factor` x as many candidates.
     pool_factor: int = 8
-    # "mqd": the model's ensemble members, and the weight of their spread in
-    # the optimistic distance to the nearest skill (acquisition.greedy_diverse).
-    ensemble_size: int = 4
+    # "mqd": the model's ensemble members (one network: four were no better and
+    # twice as slow, docs/results.md), and the weight of their spread in the
+    # optimistic distance to the nearest skill (acquisition.greedy_diverse).
+    ensemble_size: int = 1
     optimism: float = 1.0
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate

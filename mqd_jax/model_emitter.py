@@ -226,10 +226,11 @@ class ModelEmitter(Emitter):
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
         spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
-        sq, slot = repertoire_lib.nearest(repertoire, repertoire.behaviors, behaviors)
-        nearest_quality = jnp.where(repertoire.count > 0, repertoire.qualities[slot], 0.0)
-        novelty, improvement = acquisition.predicted_scores(behaviors, qualities, repertoire, self.k)
-        return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(sq), nearest_quality, novelty, improvement)
+        sq, slots = repertoire_lib.k_nearest(repertoire, behaviors, self.k)  # one search
+        nearest_quality = jnp.where(slots[:, 0] >= 0, repertoire.qualities[jnp.maximum(slots[:, 0], 0)], 0.0)
+        novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
+        return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(sq[:, 0]), nearest_quality, novelty,
+                                  improvement)
 
     def _predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire,
                      task: Task) -> tuple[jax.Array, jax.Array | None]:

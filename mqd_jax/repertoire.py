@@ -216,6 +216,14 @@ def nearest(rep: Repertoire, values: jax.Array, queries: jax.Array, exact: bool 
     return _on_prefix(_prefix_sizes(rep.capacity, min_prefix), rep.count, search, values, rep.valid, queries)
 
 
+def k_nearest(rep: Repertoire, queries: jax.Array, k: int, min_prefix: int = 512) -> tuple[jax.Array, jax.Array]:
+    """Squared distances [N, k] (ascending) and slots [N, k] of the k skills whose behaviors are nearest to each
+    query behavior [N, d], ties to the lower slot; where fewer than k skills exist (or a query is NaN) the
+    missing entries are inf (NaN) with slot -1. Searched on a prefix like `nearest`."""
+    return _on_prefix(_prefix_sizes(rep.capacity, min_prefix), rep.count, functools.partial(_nearest_before, k), rep,
+                      queries)
+
+
 def _nearest_before(num_near: int, size: int, rep: Repertoire, behaviors: jax.Array) -> tuple[jax.Array, jax.Array]:
     """[P, M] squared distances and slots of each candidate's M nearest skills, searched in the first `size` slots."""
     part = _prefix(rep, size, rep.capacity)

@@ -265,3 +265,21 @@ def test_nearest_skill_search_matches_brute_force(exact):
     np.testing.assert_allclose(sq, d.min(1), rtol=1e-4, atol=1e-5)
     empty_sq, _ = repertoire_lib.nearest(Repertoire.empty(64, 6, 2, 4), rep.actions[:64], jnp.asarray(queries))
     assert np.all(np.isinf(empty_sq))
+
+
+@pytest.mark.parametrize("count", [0, 2, 700])
+def test_k_nearest_skills_match_brute_force(count):
+    """The K nearest behaviors in ascending order, ties to the lower slot; missing ones inf with slot -1."""
+    rng = np.random.default_rng(2)
+    capacity, k = 2048, 4
+    behaviors = rng.integers(0, 6, (capacity, 2)).astype(np.float32)  # many ties
+    rep = Repertoire.empty(capacity, 1, 2, 4).replace(behaviors=jnp.asarray(behaviors),
+                                                      valid=jnp.arange(capacity) < count, count=jnp.int32(count))
+    queries = rng.integers(0, 6, (30, 2)).astype(np.float32)
+    sq, slots = repertoire_lib.k_nearest(rep, jnp.asarray(queries), k)
+    d = ((queries[:, None] - behaviors[None, :count]) ** 2).sum(-1)
+    order = np.argsort(d, axis=1, kind="stable")[:, :k]
+    found = min(count, k)
+    np.testing.assert_array_equal(slots[:, :found], order)
+    np.testing.assert_array_equal(sq[:, :found], np.take_along_axis(d, order, axis=1))
+    assert np.all(slots[:, found:] == -1) and np.all(np.isinf(sq[:, found:]))
