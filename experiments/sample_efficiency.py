@@ -33,6 +33,7 @@ import dataclasses
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -132,15 +133,26 @@ def _run(task: str, name: str, seeds: int, generations: int | None) -> dict[str,
     _, metrics = run_batch(cfg, seed_keys(seeds), on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
     ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
     print(f"{task} {name}: {time.perf_counter() - start:.0f} s", flush=True)
-    return _curves(metrics) | {"ms_per_generation": ms}
+    return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms}
 
 
-def _curves(metrics: dict[str, np.ndarray]) -> dict[str, Any]:
-    """Mean curves over seeds, and each seed's final coverage."""
+# The model's diagnostics (README, "Metrics"), averaged over seeds and the generations past warm-up.
+DIAGNOSTICS = ("opener_auc", "model_share")
+
+
+def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, Any]:
+    """Mean curves over seeds, each seed's final coverage, and the mean of each model diagnostic the run has over
+    the generations that began with `warmup_samples` rollouts or more (NaN if none)."""
+    evaluations = np.asarray(metrics["num_evaluations"], float)
+    trained = np.pad(evaluations[:, :-1], ((0, 0), (1, 0))) >= warmup_samples  # [S, G]
+    with warnings.catch_warnings():  # a run that never left warm-up averages to NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        diagnostics = {name: float(np.nanmean(np.where(trained, np.asarray(metrics[name], float), np.nan)))
+                       for name in DIAGNOSTICS if name in metrics}
     return {"rollouts": np.mean(metrics["num_evaluations"], 0).tolist(),
             "coverage": np.mean(metrics["coverage"], 0).tolist(),
             "mean_quality": np.mean(metrics["mean_quality"], 0).tolist(),
-            "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist()}
+            "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist(), **diagnostics}
 
 
 def rollouts_to_reach(rollouts: np.ndarray, coverage: np.ndarray, target: float) -> float | None:
@@ -159,8 +171,9 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
     final = np.asarray(curve["final_coverage"])
     timing = [f"{curve['ms_per_generation']:.1f}", f"{curve['ms_per_generation'] / qd['ms_per_generation']:.2f}"] \
         if timed else ["", ""]
+    diagnostics = [f"{curve[n]:.2f}" if np.isfinite(curve.get(n, np.nan)) else "" for n in DIAGNOSTICS]
     return [name, to_qd, *at, f"{quality:.3f}", f"{final.mean():.3f} +- {final.std():.3f}",
-            f"{curve['rollouts'][-1]:.0f}", *timing]
+            f"{curve['rollouts'][-1]:.0f}", *timing, *diagnostics]
 
 
 def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str:
@@ -201,7 +214,8 @@ def main() -> None:
         for (_, _, suffix), runs in zip(folders, loaded, strict=True):
             for task, by in runs.items():
                 curves.setdefault(task, {}).update(
-                    {alg + (f"-{suffix}" if suffix else ""): _curves(r.metrics) for alg, r in by.items()})
+                    {alg + (f"-{suffix}" if suffix else ""): _curves(r.metrics, r.cfg.warmup_samples)
+                     for alg, r in by.items()})
         seeds = {len(r.keys) for runs in loaded for by in runs.values() for r in by.values()}
         command = f"python experiments/sample_efficiency.py --sweep {' '.join(args.sweep)}"
     else:
@@ -221,10 +235,12 @@ def main() -> None:
              "Rollouts to QD = fraction of QD's rollouts at which the mean coverage first reaches QD's final mean "
              "coverage. Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
              "final value). Quality = the repertoire's mean quality after QD's rollouts."
-             + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's."),
+             + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's.")
+             + " Opener AUC, model share: the model's diagnostics `opener_auc` and `model_share` (README, "
+             "\"Metrics\"; 0.5 = chance), averaged over seeds and the generations past warm-up.",
              ""]
     header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality", "final coverage",
-              "rollouts", "ms/gen", "x QD"]
+              "rollouts", "ms/gen", "x QD", "opener AUC", "model share"]
     for task, by in curves.items():
         lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(_row(n, c, by["qd"], not args.sweep)) + " |" for n, c in by.items()]

@@ -15,7 +15,8 @@ config whose `algorithm` is an emitter runs that emitter.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 from mqd_jax.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.config import Config
@@ -43,3 +44,22 @@ _BUILDERS: dict[str, Callable[[Config], Emitter]] = {"random": lambda cfg: Unifo
 def emitter(cfg: Config) -> Emitter:
     """The emitter a run of `cfg` uses: the preset `cfg.algorithm` names, or `cfg.algorithm` itself."""
     return cfg.algorithm if isinstance(cfg.algorithm, Emitter) else _BUILDERS[cfg.algorithm](cfg)
+
+
+# The model fields of `Config` (every other field configures all presets alike), and those each preset reads:
+# batches of one sweep must agree on the model fields both of their presets read, and only on those.
+_TRAINING = ("learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size")
+MODEL_FIELDS = frozenset((*_TRAINING, "pool_factor", "ensemble_size", "optimism", "t_nov", "t_qua", "budgeted"))
+
+
+def model_fields_read(cfg: Mapping[str, Any]) -> frozenset[str]:
+    """The model fields that the preset of a config dict (`Config.to_dict`) reads; all of them for an algorithm
+    that is not a preset."""
+    algorithm = cfg.get("algorithm")
+    if algorithm in ("random", "qd"):
+        return frozenset()
+    if algorithm == "mqd":
+        return frozenset((*_TRAINING, "pool_factor", "ensemble_size", "optimism"))
+    if algorithm == "mqd-paper":  # the pool only when budgeted
+        return frozenset((*_TRAINING, "t_nov", "t_qua", "budgeted", *(("pool_factor",) if cfg.get("budgeted") else ())))
+    return MODEL_FIELDS

@@ -37,7 +37,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax import checkpoint, registry
+from mqd_jax import checkpoint, presets, registry
 from mqd_jax.config import PRESETS, Config, upgraded
 from mqd_jax.folders import differences, read_json, write_atomically, write_npz
 from mqd_jax.provenance import machine, provenance
@@ -100,9 +100,11 @@ def _batches(out: str) -> list[tuple[str, dict[str, Any]]]:
     return found
 
 
-def _comparable(cfg: dict[str, Any]) -> dict[str, Any]:
-    """The fields that must agree between the batches of one task (all but the algorithm)."""
-    return {k: v for k, v in cfg.items() if k != "algorithm"}
+def _comparable(cfg: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
+    """The fields of `cfg` that must agree with `other`'s, a batch of the same task: all but the algorithm and the
+    model fields that not both presets read (a QD batch may sit beside an M-QD batch of any ensemble size)."""
+    unread = presets.MODEL_FIELDS - (presets.model_fields_read(cfg) & presets.model_fields_read(other))
+    return {k: v for k, v in cfg.items() if k != "algorithm" and k not in unread}
 
 
 def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], keys: list) -> dict[str, str]:
@@ -111,7 +113,7 @@ def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], key
     for stem, saved in batches:
         if saved["config"].get("task") != cfg["task"]:
             continue
-        differ = differences(_comparable(saved["config"]), _comparable(cfg))
+        differ = differences(_comparable(saved["config"], cfg), _comparable(cfg, saved["config"]))
         if saved["keys"] != keys:
             differ = ", ".join(filter(None, [differ, f"{len(saved['keys'])} other seed keys, now {len(keys)}"]))
         if differ:

@@ -5,6 +5,7 @@ import hashlib
 import importlib.util
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -105,6 +106,25 @@ def test_tables_refuse_a_folder_whose_batches_were_mixed_by_hand(tmp_path):
     saved["config"]["t_dist"] = 0.03
     path.write_text(json.dumps(saved))
     with pytest.raises(ValueError, match=r"mixes runs that cannot be compared.*t_dist: saved 0\.03, now 0\.02"):
+        results.load_runs(str(tmp_path))
+
+
+def test_batches_need_agree_only_on_the_model_fields_both_presets_read(tmp_path):
+    """A QD batch sits beside M-QD batches of any model settings (QD reads none); two model presets must agree on
+    the fields both read (hidden size), not on those one of them ignores (ensemble size, t_nov)."""
+    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2", "--warmup-samples", "8")
+    qd = json.loads((tmp_path / "obstacle2d_qd.json").read_text())
+
+    def add(algorithm, **changes):
+        saved = {**qd, "config": {**qd["config"], "algorithm": algorithm, **changes}}
+        (tmp_path / f"obstacle2d_{algorithm}.json").write_text(json.dumps(saved))
+        shutil.copy(tmp_path / "obstacle2d_qd.npz", tmp_path / f"obstacle2d_{algorithm}.npz")
+
+    add("mqd", ensemble_size=4, hidden_size=64, t_nov=0.5)
+    add("mqd-paper", ensemble_size=1, hidden_size=64, t_nov=0.04)
+    assert list(results.load_runs(str(tmp_path))["obstacle2d"]) == ["mqd", "mqd-paper", "qd"]
+    add("mqd-paper", hidden_size=32)
+    with pytest.raises(ValueError, match=r"cannot be compared.*_mqd differs \(hidden_size: saved 64, now 32\)"):
         results.load_runs(str(tmp_path))
 
 
