@@ -192,6 +192,15 @@ def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str:
     return path
 
 
+def figure_path(out: str) -> str:
+    """The figure beside the table `out`: docs/data/NAME.md -> docs/figures/NAME.png, else NAME.png in out's folder
+    (so a table written elsewhere never overwrites a figure in docs)."""
+    folder, name = os.path.split(os.path.splitext(out)[0])
+    if os.path.normpath(folder) == os.path.join("docs", "data"):
+        folder = os.path.join("docs", "figures")
+    return os.path.join(folder, name + ".png")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
@@ -202,7 +211,8 @@ def main() -> None:
                         help="read the presets of `mqd sweep` folders instead of running; DIR=SUFFIX names "
                         "that folder's runs PRESET-SUFFIX (a variant beside the same presets in another folder)")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
-    parser.add_argument("--figure", default="docs/figures/sample_efficiency_2d.png")
+    parser.add_argument("--figure", default=None,
+                        help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
     args = parser.parse_args()
     if "arm" in args.tasks and not registry.is_task("arm"):
         registry.register("arm", make_arm)
@@ -248,7 +258,7 @@ def main() -> None:
     report.write(lines, args.out)
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
         json.dump(curves, f)
-    print(_figure(curves, args.figure))
+    print(_figure(curves, args.figure or figure_path(args.out)))
 
 
 if __name__ == "__main__":
