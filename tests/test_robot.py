@@ -135,21 +135,25 @@ def test_a_released_cube_comes_to_rest_on_the_surface_below():
 
     actions = jnp.array([via(0.6, 0.0, 0.25) * 5,  # over the table (top at 0)
                          via(0.7, -0.2, 0.3) * 4 + via(0.7, -0.3, 0.25),  # over the high shelf (top at 0.15)
-                         via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.3, 0.2)], jnp.float32)  # the low shelf (0.08)
+                         via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.3, 0.2),  # the low shelf (0.08)
+                         via(0.7, -0.2, 0.3) * 4 + via(0.7, -0.3, 0.1)], jnp.float32)  # 5 cm into the high shelf
     ctrl = task.rollout_controls(actions)
-    qpos, sensors, finite = task._rollout(np.asarray(ctrl), np.ones(3, bool))
+    qpos, sensors, finite = task._rollout(np.asarray(ctrl), np.ones(4, bool))
     assert np.all(finite)
-    np.testing.assert_allclose(qpos[:, 9], [0.025, 0.175, 0.105], atol=0.003)  # cube centre 2.5 cm above each top
+    np.testing.assert_allclose(qpos[:, 9], [0.025, 0.175, 0.105, 0.175], atol=0.003)  # cube centre 2.5 cm above
     release = np.asarray(task.release_step(task.plan(actions).durations))
-    held = sensors[np.arange(3), release - 1, 3:6]  # the cube while still held, just before release
+    held = sensors[np.arange(4), release - 1, 3:6]  # the cube while still held, just before release
     # The arm has settled at the last via-point before the release (the servos trail a moving target by
     # centimetres; RELEASE_DELAY later they are within millimetres).
-    np.testing.assert_allclose(held[:, :2], [[0.6, 0.0], [0.7, -0.3], [0.5, 0.3]], atol=0.005)
-    gripper = sensors[np.arange(3), release - 1, :3]
+    np.testing.assert_allclose(held[:3, :2], [[0.6, 0.0], [0.7, -0.3], [0.5, 0.3]], atol=0.005)
+    gripper = sensors[np.arange(3), release[:3] - 1, :3]
     np.testing.assert_allclose(gripper, [[0.6, 0.0, 0.25], [0.7, -0.3, 0.25], [0.5, 0.3, 0.2]], atol=0.005)
-    # The quality is minus the drop from there to rest.
+    # The quality is minus the drop from there to rest; a cube held pressed into the shelf rises when let go
+    # (the grasp pushed it into the contact), which is no drop: quality 0, not a reward for pressing.
     b, q, valid = jax.jit(task.evaluate)(actions, None)
-    np.testing.assert_allclose(q, -(held[:, 2] - qpos[:, 9]), atol=1e-4)
+    assert held[3, 2] < qpos[3, 9] - 0.001
+    np.testing.assert_allclose(q, -np.maximum(held[:, 2] - qpos[:, 9], 0.0), atol=1e-4)
+    assert q[3] == 0.0 and np.all(np.asarray(q[:3]) < 0.0)
     np.testing.assert_allclose(b, qpos[:, 7:9], atol=1e-6)
     assert place.VIA_POINTS == 5 and np.all(np.asarray(valid))
 
