@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import report
 
 from mqd_jax import Config, ModelEmitter, coverage, init, model, presets, repertoire
-from mqd_jax.run import _NUM_NEAR, ask, generation, get_task, run_generations
+from mqd_jax.run import ask, generation, get_task, run_generations
 
 
 def main() -> None:
@@ -42,7 +42,7 @@ def main() -> None:
         "ask (variation, acquisition)": jax.jit(lambda s: ask(s, cfg, params)),
         "rollouts": jax.jit(lambda s: task.evaluate(proposal.actions, key)),
         "insertion (incl. neighbours, novelty)": jax.jit(lambda s: repertoire.insert(
-            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, _NUM_NEAR, chunk=32)),
+            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, repertoire.NUM_NEAR, chunk=32)),
         "coverage stamp": jax.jit(lambda s: coverage.stamp(s.coverage, b, ok.astype(jnp.int32), params.t_dist)),
     }
     emitter = presets.emitter(cfg)

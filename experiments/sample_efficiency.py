@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import Config, IsoLine, ModelEmitter, presets, registry, results
+from mqd_jax import Config, Imagination, IsoLine, ModelEmitter, presets, registry, results
 from mqd_jax.acquisition import Budgeted
 from mqd_jax.model_emitter import ModelEmitterState
 from mqd_jax.sweep import run_batch, seed_keys
@@ -87,6 +87,15 @@ def _replaced(**changes: Any) -> Callable[[Config], Any]:
     return lambda cfg: dataclasses.replace(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")), **changes)
 
 
+def _rebuilt(cls: type, **changes: Any) -> Callable[[Config], Any]:
+    """The "mqd" preset's emitter of a config rebuilt as `cls` (a ModelEmitter subclass), some fields changed."""
+    def build(cfg: Config) -> Any:
+        mqd = presets.emitter(dataclasses.replace(cfg, algorithm="mqd"))
+        return cls(**{f.name: getattr(mqd, f.name) for f in dataclasses.fields(ModelEmitter)} | changes)
+
+    return build
+
+
 def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], Config]:
     """A composition run with some of the config's traced settings changed (the learning rate, say)."""
     return lambda cfg: dataclasses.replace(cfg, algorithm=build(cfg), **changes)
@@ -117,9 +126,9 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-wide-batches-lr4": _with(_WIDE_BATCHES, learning_rate=4e-3),
     "mqd-half-training-lr2": _with(_HALF_TRAINING, learning_rate=2e-3),
     "mqd-lr2": _with(lambda cfg: "mqd", learning_rate=2e-3),
-    "oracle": lambda cfg: Oracle(**{f.name: getattr(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")),
-                                                    f.name) for f in dataclasses.fields(ModelEmitter)}
-                                 | dict(anchoring="none", fallback=None, ensemble_size=1, num_batches=1)),
+    "mqd-imagination": _rebuilt(Imagination, fallback=None, generations=3),
+    "mqd-imagination-1": _rebuilt(Imagination, fallback=None, generations=1),
+    "oracle": _rebuilt(Oracle, anchoring="none", fallback=None, ensemble_size=1, num_batches=1),
 }
 FRACTIONS = (0.25, 0.5, 1.0)
 

@@ -4,6 +4,7 @@ from mqd_jax.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.adaptation import Adapted, adapt
 from mqd_jax.config import Config, Params
 from mqd_jax.emitters import Emitter, Evaluated, IsoLine, Proposal, Uniform
+from mqd_jax.imagination import Imagination
 from mqd_jax.model_emitter import Fallback, ModelEmitter
 from mqd_jax.repertoire import AddStatus
 from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
@@ -19,6 +20,7 @@ __all__ = [
            "Emitter",
            "Evaluated",
            "Fallback",
+           "Imagination",
            "IsoLine",
            "ModelEmitter",
            "Params",

@@ -213,16 +213,12 @@ class ModelEmitter(Emitter):
     def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task) -> (
             acquisition.Judged):
         """The model's view of actions [N, n] against the repertoire (anchored as `anchoring` says)."""
-        return self._judged(state, *self._predictions(state, actions, repertoire, task), repertoire)
+        return self._judged(state, *self.predictions(state, actions, repertoire, task), repertoire)
 
     def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
                 repertoire: Repertoire) -> acquisition.Judged:
         """`Judged` from the members' plain and anchored predictions [E, N, d + 1]."""
-        y = plain
-        if self.anchoring == "nearest":
-            y = anchored
-        elif self.anchoring == "auto":
-            y = jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
+        y = self.chosen(state, plain, anchored)
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
         spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
@@ -232,7 +228,16 @@ class ModelEmitter(Emitter):
         return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(sq[:, 0]), nearest_quality, novelty,
                                   improvement)
 
-    def _predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire,
+    def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
+        """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
+        whichever had the lower recent held-out error."""
+        if self.anchoring == "nearest":
+            return anchored
+        if self.anchoring == "auto":
+            return jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
+        return plain
+
+    def predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire,
                      task: Task) -> tuple[jax.Array, jax.Array | None]:
         """The members' plain predictions [E, N, d + 1] and, unless `anchoring` is "none", the anchored ones."""
         plain = self.members(state, actions, task)
@@ -249,7 +254,7 @@ class ModelEmitter(Emitter):
                 num: int) -> Proposal:
         pool_size = self.acquisition.pool_size(num)
         pool = self.inner.propose(key, state.inner, repertoire, task, params, pool_size)
-        plain, anchored = self._predictions(state, pool.actions, repertoire, task)
+        plain, anchored = self.predictions(state, pool.actions, repertoire, task)
         judged = self._judged(state, plain, anchored, repertoire)
         warm_up = state.evaluations < self.warmup_samples
         rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)

@@ -29,6 +29,9 @@ from flax import struct
 
 from mqd_jax import batching, neighbours
 
+# Nearest pre-generation skills precomputed per candidate before the sequential rule (`insert`'s num_near).
+NUM_NEAR = 4
+
 
 class AddStatus(enum.IntEnum):
     """What insertion did with a candidate (`Insertion.status`, int32 arrays of these values)."""

@@ -26,8 +26,6 @@ from mqd_jax.emitters import Evaluated, Proposal
 from mqd_jax.repertoire import AddStatus
 from mqd_jax.task import Task, check_outputs
 
-# Nearest pre-generation skills precomputed per candidate (see repertoire.py).
-_NUM_NEAR = 4
 # The metrics of every generation (scalars; see `run_mqd`) and their dtypes; the emitter adds its own
 # (`metric_dtypes`). A skipped generation reports zeros of these without tracing a generation to find out.
 METRICS = {
@@ -215,7 +213,8 @@ def _usable(candidates: Candidates, behaviors: jax.Array, qualities: jax.Array,
 def _insert(rep: repertoire.Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array,
             usable: jax.Array, cfg: Config, params: Params) -> tuple[repertoire.Repertoire, repertoire.Insertion]:
     """Stage insert: the paper's sequential insertion rule; novelty brought up to date."""
-    return repertoire.insert(rep, actions, behaviors, qualities, usable, params.t_dist, cfg.k, _NUM_NEAR, chunk=32)
+    return repertoire.insert(rep, actions, behaviors, qualities, usable, params.t_dist, cfg.k, repertoire.NUM_NEAR,
+                             chunk=32)
 
 
 def _archive(arch: archive_lib.Archive, before: repertoire.Repertoire, actions: jax.Array, evaluated: Evaluated,
