@@ -70,9 +70,8 @@ class Imagination(ModelEmitter):
             predicted = self.chosen(state, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,
                                              params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32)
-            written = jnp.where(ins.alive, ins.slot, rep.capacity)
             return rep, (pool, predicted, plain.mean(axis=0), anchored if anchored is None else anchored.mean(0),
-                         written)
+                         repertoire_lib.written_slots(ins, rep.capacity))
 
         _, (pools, predicted, plain, anchored, written) = jax.lax.scan(
             imagine, repertoire, jax.random.split(key, self.generations))

@@ -238,7 +238,7 @@ def _apply(k: int, chunk: int, size: int, rep: Repertoire, behaviors: jax.Array,
            ins: Insertion) -> Repertoire:
     """Writes the rule's outcome into the first `size` slots (all but actions) and brings novelty up to date."""
     part = _prefix(rep, size, rep.capacity)
-    slot = _written(ins, size)
+    slot = written_slots(ins, size)
     count = rep.count + (ins.status == AddStatus.ADDED).sum(dtype=jnp.int32)
     valid = jnp.arange(size) < count
     new_behaviors = part.behaviors.at[slot].set(behaviors, mode="drop")
@@ -254,7 +254,7 @@ def _apply(k: int, chunk: int, size: int, rep: Repertoire, behaviors: jax.Array,
     return jax.tree.map(lambda x, y: x.at[:y.shape[0]].set(y) if x.ndim else y, rep, part)
 
 
-def _written(ins: Insertion, capacity: int) -> jax.Array:
+def written_slots(ins: Insertion, capacity: int) -> jax.Array:
     """[P] the slot each candidate's skill ends in, or `capacity` (out of range) if it is not in the repertoire."""
     return jnp.where(ins.alive, ins.slot, capacity)
 
@@ -292,4 +292,4 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
                            t_dist)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
-    return new.replace(actions=rep.actions.at[_written(ins, capacity)].set(actions, mode="drop")), ins
+    return new.replace(actions=rep.actions.at[written_slots(ins, capacity)].set(actions, mode="drop")), ins
