@@ -82,18 +82,18 @@ def make_arm(joints: int = 10) -> PlanarArm:
     return PlanarArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
 
 
-def _replaced(**changes: Any) -> Callable[[Config], Any]:
-    """The "mqd" preset's emitter of a config, with some fields changed."""
-    return lambda cfg: dataclasses.replace(presets.emitter(dataclasses.replace(cfg, algorithm="mqd")), **changes)
-
-
 def _rebuilt(cls: type, **changes: Any) -> Callable[[Config], Any]:
-    """The "mqd" preset's emitter of a config rebuilt as `cls` (a ModelEmitter subclass), some fields changed."""
+    """The "mqd" preset's emitter of a config rebuilt as `cls` (ModelEmitter or a subclass), some fields changed."""
     def build(cfg: Config) -> Any:
         mqd = presets.emitter(dataclasses.replace(cfg, algorithm="mqd"))
         return cls(**{f.name: getattr(mqd, f.name) for f in dataclasses.fields(ModelEmitter)} | changes)
 
     return build
+
+
+def _replaced(**changes: Any) -> Callable[[Config], Any]:
+    """The "mqd" preset's emitter of a config, with some fields changed."""
+    return _rebuilt(ModelEmitter, **changes)
 
 
 def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], Config]:
