@@ -70,10 +70,11 @@ class Imagination(ModelEmitter):
             predicted = self.chosen(state, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,
                                              params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32)
-            return rep, (pool, predicted, plain.mean(axis=0), anchored if anchored is None else anchored.mean(0),
-                         repertoire_lib.written_slots(ins, rep.capacity))
+            # anchoring "auto" compares both predictions on the rollouts (ModelEmitter.update).
+            both = (plain.mean(axis=0), anchored.mean(axis=0)) if self.anchoring == "auto" else ()
+            return rep, (pool, predicted, both, repertoire_lib.written_slots(ins, rep.capacity))
 
-        _, (pools, predicted, plain, anchored, written) = jax.lax.scan(
+        _, (pools, predicted, both, written) = jax.lax.scan(
             imagine, repertoire, jax.random.split(key, self.generations))
         kept = survivors(written, repertoire.capacity).reshape(-1)
         warm_up = state.evaluations < self.warmup_samples
@@ -88,5 +89,5 @@ class Imagination(ModelEmitter):
                 "predicted_distance": jnp.sqrt(sq), "from_model": jnp.ones(num, bool),
                 "discarded": (wanted & ~rollout).sum(dtype=jnp.int32)}
         if self.anchoring == "auto":
-            info["both_behaviors"] = jnp.stack([flat(plain)[:, :-1], flat(anchored)[:, :-1]])
+            info["both_behaviors"] = jnp.stack([flat(y)[:, :-1] for y in both])
         return Proposal(flat(pools.actions), rollout, info)

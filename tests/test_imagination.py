@@ -87,7 +87,8 @@ def test_imagination_is_validated(kw, field):
 
 
 def test_a_run_rolls_out_at_most_the_population_and_counts_the_rest_as_discarded(tiny):
-    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), warmup_samples=16, num_batches=2))
+    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), anchoring="auto", warmup_samples=16,
+                                                                num_batches=2))
     _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     assert np.all(metrics["evaluations"] + metrics["discarded"] == cfg.population_size)
     assert metrics["evaluations"][0] == cfg.population_size  # warm-up: the first 16 rollouts
