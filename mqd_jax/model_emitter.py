@@ -238,7 +238,7 @@ class ModelEmitter(Emitter):
         return plain
 
     def predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire,
-                     task: Task) -> tuple[jax.Array, jax.Array | None]:
+                    task: Task) -> tuple[jax.Array, jax.Array | None]:
         """The members' plain predictions [E, N, d + 1] and, unless `anchoring` is "none", the anchored ones."""
         plain = self.members(state, actions, task)
         if self.anchoring == "none":
