@@ -17,7 +17,7 @@ via-points inside the jitted generation; the same MjModel drives the physics, so
 there is one source of truth.
 
 Two physics backends run the same MjModel behind one interface,
-`rollout(ctrl [..., H, nu (+ neq)], mask [...]) -> (final qpos, sensor readings
+`rollout(ctrl [..., H, nu], mask [...]) -> (final qpos, sensor readings
 at every step, finite)`:
 
 * `CRollout` ("mujoco", for CPUs): C MuJoCo through `mujoco.rollout` (one MjData
@@ -69,12 +69,24 @@ SPEED_MARGIN = 0.9
 # Pointing down, gamma = 0: the end effector's z axis is the world's -z and its x axis the world's -x
 # (the arm leaning forward over the table, flange unturned).
 _DOWN = np.diag([-1.0, 1.0, -1.0])
+# Scenes whose tool carries a gripper (an asset attached to body "tool"; MJCF cannot add a child to a body of
+# an included file). Its servo "gripper_grip" takes the pads' opening: GRIP_CLOSED, 2 cm inside a held 5 cm
+# cube, saturates the servo's force limit (a squeeze that does not depend on the object's exact width);
+# GRIP_OPEN leaves 3 cm on each side.
+GRIPPERS = {"place": "gripper.xml"}
+GRIP_CLOSED, GRIP_OPEN = -0.02, 0.03
+GRASP_STEPS = 100  # steps (0.4 s) for a grasp to settle before a rollout starts
 
 
 @functools.cache
 def load(scene: str) -> mujoco.MjModel:
-    """The MjModel of `envs/assets/<scene>.xml` (cached: one per scene)."""
-    return mujoco.MjModel.from_xml_path(os.path.join(ASSETS, f"{scene}.xml"))
+    """The MjModel of `envs/assets/<scene>.xml`, with GRIPPERS[scene] attached to the tool (cached: one per
+    scene)."""
+    spec = mujoco.MjSpec.from_file(os.path.join(ASSETS, f"{scene}.xml"))
+    if scene in GRIPPERS:
+        gripper = mujoco.MjSpec.from_file(os.path.join(ASSETS, GRIPPERS[scene]))
+        spec.attach(gripper, frame=spec.body("tool").add_frame(), prefix="gripper_")
+    return spec.compile()
 
 
 class Kinematics:
@@ -194,11 +206,8 @@ def joint_trajectory(q_start: jax.Array, q_via: jax.Array, durations: jax.Array,
 
 
 class CRollout:
-    """C MuJoCo rollouts of a batch of control sequences from the scene's start state.
-
-    A control row is the actuators' targets, followed, when the scene has
-    equality constraints, by their on/off switches (mjSTATE_EQ_ACTIVE).
-    """
+    """C MuJoCo rollouts of a batch of control sequences (the actuators' targets) from the scene's start
+    state."""
 
     def __init__(self, scene: str, q_start: np.ndarray) -> None:
         self.model = load(scene)
@@ -207,11 +216,10 @@ class CRollout:
         self.initial_state = np.zeros(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, data, self.initial_state, spec)
         self.sensors_start = np.array(data.sensordata, np.float32)
-        self.control_spec = mujoco.mjtState.mjSTATE_CTRL | (mujoco.mjtState.mjSTATE_EQ_ACTIVE if self.model.neq else 0)
         self.datas = [mujoco.MjData(self.model) for _ in range(os.cpu_count() or 1)]
 
     def __call__(self, ctrl: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """ctrl [..., H, nu (+ neq)], mask [...] -> final qpos [..., nq], sensors [..., H, ns], finite [...]."""
+        """ctrl [..., H, nu], mask [...] -> final qpos [..., nq], sensors [..., H, ns], finite [...]."""
         lead, horizon = ctrl.shape[:-2], ctrl.shape[-2]
         ctrl = np.asarray(ctrl, np.float64).reshape(-1, *ctrl.shape[-2:])
         rows = np.flatnonzero(np.broadcast_to(np.asarray(mask), lead).reshape(-1))
@@ -220,27 +228,31 @@ class CRollout:
         sensors = np.zeros((ctrl.shape[0], horizon, ns), np.float32)
         finite = np.zeros(ctrl.shape[0], bool)
         if len(rows):
-            state, sensors[rows] = rollout.rollout(self.model, self.datas, self.initial_state[None], ctrl[rows],
-                                                   control_spec=int(self.control_spec))
+            state, sensors[rows] = rollout.rollout(self.model, self.datas, self.initial_state[None], ctrl[rows])
             qpos[rows] = state[:, -1, 1:1 + nq]
             finite[rows] = np.isfinite(state[:, -1]).all(axis=1)
         return qpos.reshape(*lead, nq), sensors.reshape(*lead, horizon, ns), finite.reshape(lead)
 
 
 def start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
-    """MjData at the start: the arm at q_start and holding it, everything else as in the MJCF; a scene
-    with a "hold" weld starts with its object held under the gripper, as the weld's relpose says."""
+    """MjData at the start: the arm at q_start and holding it, everything else as in the MJCF; a scene with
+    a gripper starts with its object squeezed between the pads (placed there, the pads closed on it, and
+    GRASP_STEPS simulated so that the grasp has settled)."""
     data = mujoco.MjData(model)
     data.qpos[:7] = q_start
-    data.ctrl[:] = q_start
+    data.ctrl[:7] = q_start
     mujoco.mj_forward(model, data)
-    hold = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, "hold")
-    if hold >= 0:
-        tool, adr = model.eq_obj1id[hold], object_qpos_address(model)
-        rel_pos, rel_quat = model.eq_data[hold, 3:6], model.eq_data[hold, 6:10]
-        data.qpos[adr:adr + 3] = data.xpos[tool] + data.xmat[tool].reshape(3, 3) @ rel_pos
-        mujoco.mju_mulQuat(data.qpos[adr + 3:adr + 7], data.xquat[tool], rel_quat)
+    grip = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "gripper_grip")
+    if grip >= 0:
+        tool, adr = model.body("tool").id, object_qpos_address(model)
+        depth = model.body("gripper_pad_left").pos  # the pads' centre in the tool's frame
+        data.qpos[adr:adr + 3] = data.xpos[tool] + data.xmat[tool].reshape(3, 3) @ depth
+        data.qpos[adr + 3:adr + 7] = data.xquat[tool]
+        data.ctrl[grip] = GRIP_CLOSED
         mujoco.mj_forward(model, data)
+        for _ in range(GRASP_STEPS):
+            mujoco.mj_step(model, data)
+        data.time = 0.0
     return data
 
 
@@ -250,8 +262,8 @@ def object_qpos_address(model: mujoco.MjModel) -> int:
     return int(model.jnt_qposadr[model.body_jntadr[body]])
 
 
-# MuJoCo Warp's buffers: contacts per world (a cube on a table touches at up to 8 points; fingers and shelves
-# add some) and constraint rows per world (contacts with friction, joint limits, the weld).
+# MuJoCo Warp's buffers: contacts per world (a cube on a table touches at up to 8 points; pads and shelves
+# add some) and constraint rows per world (contacts with friction, joint limits, the pads' coupling).
 WARP_CONTACTS_PER_WORLD = 64
 WARP_CONSTRAINTS_PER_WORLD = 512
 
@@ -266,7 +278,7 @@ class MjxRollout:
     def __init__(self, scene: str, q_start: np.ndarray, impl: str = "jax") -> None:
         model = load(scene)
         data = start_data(model, q_start)
-        self.nu, self.impl = model.nu, impl
+        self.impl = impl
         self.model = mjx.put_model(model, impl=impl)
         if impl == "warp":
             self._mj_model, self._start = model, data
@@ -279,18 +291,16 @@ class MjxRollout:
         self.sensors_start = np.array(data.sensordata, np.float32)
 
     def __call__(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """ctrl [B, H, nu (+ neq)] -> final qpos [B, nq], sensors [B, H, ns], finite [B]; every row runs."""
+        """ctrl [B, H, nu] -> final qpos [B, nq], sensors [B, H, ns], finite [B]; every row runs."""
         del mask
         if self.impl == "warp":
             return self._rollouts(ctrl)
         return jax.vmap(lambda c: self._one(self.data, c))(ctrl)
 
     def _one(self, data: mjx.Data, controls: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """One rollout of controls [H, nu (+ neq)] from `data`."""
+        """One rollout of controls [H, nu] from `data`."""
         def step(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, jax.Array]:
-            if u.shape[0] > self.nu:
-                d = d.replace(eq_active=u[self.nu:] > 0.5)
-            d = mjx.step(self.model, d.replace(ctrl=u[:self.nu]))
+            d = mjx.step(self.model, d.replace(ctrl=u))
             return d, d.sensordata
 
         final, sensors = jax.lax.scan(step, data, controls)

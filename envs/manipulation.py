@@ -1,8 +1,9 @@
 """What the KUKA tasks share: via-point actions through IK, the physics backend, and its rollouts.
 
 A task's action is a sequence of via-points; a subclass says how an action
-row becomes via-points (`via_points`), when the scene's equality constraints
-are on (`release_switch`: Place's weld) and what behaviors and qualities the rollouts give
+row becomes via-points (`via_points`), what a scene's gripper is told at each
+step (`gripper_controls`: Place's grasp and release) and what behaviors and
+qualities the rollouts give, and whether the task's own conditions hold
 (`outcome`). Every rollout starts from the scene's start state (arm pointing
 down above the table's centre), follows the joint trajectory through the
 via-points, each segment stretched where the joints' speed limits need it
@@ -13,15 +14,19 @@ rest.
 A rollout is invalid (valid = False) when a via-point is out of the arm's reach
 (IK ends farther than `kuka.IK_POSITION_TOLERANCE` from it; not simulated), when
 the speed-limited motion does not fit in `motion_steps` (not simulated), when
-the simulation diverges, when the object ends off the table top, or when the
+the simulation diverges, when the object ends off the table top, when the
 object still moves faster than `REST_SPEED` at the end (it has not come to rest,
-so its final position is not yet known).
+so its final position is not yet known), or when the task's outcome says so
+(Place: the cube was no longer in the hand when it was to be let go).
 
 `backend`: "mujoco" (C MuJoCo, CPUs), "mjx" (MJX's JAX implementation, any
 accelerator), "warp" (MuJoCo Warp through MJX, NVIDIA GPUs; the `gpu` extra)
 or "auto" (the default: "mujoco" when `jax.default_backend()` is "cpu", else
 "warp" on a CUDA GPU with MuJoCo Warp installed, else "mjx");
-`mqd_jax.registry.make(name, backend=...)` sets it.
+`mqd_jax.registry.make(name, backend=...)` sets it. A scene whose MJCF asks for
+MuJoCo's discrete integrator (Place: a friction grasp) runs on "mujoco" and
+"warp" only; MJX's JAX implementation does not have that integrator, and is
+refused with a clear error.
 """
 
 from __future__ import annotations
@@ -68,7 +73,7 @@ class Plan:
     segment durations, and the controls.
 
     reached [B], durations [B, V] (steps), fits [B] (the motion ends within motion_steps),
-    ctrl [B, horizon, nu (+ neq)].
+    ctrl [B, horizon, nu].
     """
 
     reached: jax.Array
@@ -93,8 +98,12 @@ class Manipulation(Task):
         backend = auto_backend() if self.backend == "auto" else self.backend
         if backend == "warp" and not warp_installed():
             raise ValueError("backend='warp' needs MuJoCo Warp: pip install -e .[gpu]")
-        q_start = kuka.start_pose(self.scene)
         model = kuka.load(self.scene)
+        if backend == "mjx" and model.opt.integrator == mujoco.mjtIntegrator.mjINT_DISCRETE:
+            raise ValueError(f"scene {self.scene!r} needs MuJoCo's discrete integrator (its friction grasp), which "
+                             "MJX's JAX implementation does not have: use backend='mujoco' (CPUs) or 'warp' "
+                             "(NVIDIA GPUs; pip install -e .[gpu])")
+        q_start = kuka.start_pose(self.scene)
         object.__setattr__(self, "physics", backend)
         object.__setattr__(self, "_kinematics", kuka.Kinematics(model))
         object.__setattr__(self, "_q_start", q_start)
@@ -112,18 +121,19 @@ class Manipulation(Task):
         """actions [B, n] -> targets [B, V, 3], gammas [B, V], durations [B, V] (steps)."""
         raise NotImplementedError
 
-    def release_switch(self, durations: jax.Array) -> jax.Array | None:
-        """[B, horizon, neq] on/off switches of the scene's equality constraints for speed-limited durations
-        [B, V], or None if it has none."""
+    def gripper_controls(self, durations: jax.Array) -> jax.Array | None:
+        """[B, horizon, 1]: the gripper's targets (kuka.GRIP_CLOSED / GRIP_OPEN) at every step for
+        speed-limited durations [B, V], or None for a scene without a gripper."""
         return None
 
-    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Sensors [B, H, ns] (ee_pos, object_pos) and durations [B, V] -> behaviors [B, 2], qualities [B]."""
+    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Sensors [B, H, ns] (ee_pos, object_pos) and durations [B, V] -> behaviors [B, 2], qualities [B] and
+        whether the task's own conditions for a valid rollout hold [B]."""
         raise NotImplementedError
 
     def plan(self, actions: jax.Array) -> Plan:
         """actions [B, n] -> the Plan: IK through the via-points (each from the last), speed-limited durations,
-        and the controls (the joint trajectory, then any equality switches)."""
+        and the controls (the joint trajectory, then any gripper's targets)."""
         targets, gammas, durations = self.via_points(actions)
         q_start = jnp.asarray(self._q_start, jnp.float32)
 
@@ -140,20 +150,20 @@ class Manipulation(Task):
 
         reached, durations, arm = jax.vmap(one)(targets, gammas, durations)
         fits = durations.sum(axis=1) <= self.motion_steps
-        switch = self.release_switch(durations)
-        ctrl = arm if switch is None else jnp.concatenate([arm, switch], axis=-1)
+        gripper = self.gripper_controls(durations)
+        ctrl = arm if gripper is None else jnp.concatenate([arm, gripper], axis=-1)
         return Plan(reached, durations, fits, ctrl)
 
     def rollout_controls(self, actions: jax.Array) -> jax.Array:
-        """actions [B, n] -> what the backends take: joint targets and, for a scene with equality
-        constraints, their switches, [B, horizon, nu (+ neq)]."""
+        """actions [B, n] -> what the backends take: joint targets and, for a scene with a gripper, its
+        targets, [B, horizon, nu]."""
         return self.plan(actions).ctrl
 
     def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         return self.evaluate_masked(actions, key, jnp.ones(actions.shape[0], bool))
 
     def simulate(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """ctrl [B, horizon, nu (+ neq)], mask [B] -> final qpos [B, nq], sensors [B, horizon, ns], finite [B] on the
+        """ctrl [B, horizon, nu], mask [B] -> final qpos [B, nq], sensors [B, horizon, ns], finite [B] on the
         task's backend (C MuJoCo skips the rows outside the mask; MJX runs them all)."""
         if self.physics != "mujoco":
             return self._rollout(ctrl, mask)
@@ -169,12 +179,12 @@ class Manipulation(Task):
         plan = self.plan(actions)
         runs = mask & plan.reached & plan.fits
         _, sensors, finite = self.simulate(plan.ctrl, runs)
-        behaviors, qualities = self.outcome(sensors, plan.durations)
+        behaviors, qualities, ok = self.outcome(sensors, plan.durations)
         obj = sensors[:, -1, 3:6]
         low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
         speed = jnp.linalg.norm(obj - sensors[:, -2, 3:6], axis=1) / self._timestep
-        return behaviors, qualities, runs & finite & on_table & (speed <= REST_SPEED)
+        return behaviors, qualities, runs & finite & on_table & (speed <= REST_SPEED) & ok
 
     def layout(self) -> tuple[Region, ...]:
         """The table and any shelves (boxes of the scene named table*/shelf*, from its MJCF), the
@@ -201,8 +211,7 @@ class Manipulation(Task):
         model = kuka.load(self.scene)
         c = self._rollout if isinstance(self._rollout, kuka.CRollout) else kuka.CRollout(self.scene, self._q_start)
         ctrl = np.asarray(self.rollout_controls(jnp.asarray(action, jnp.float32)[None]), np.float64)
-        state, _ = rollout.rollout(c.model, c.datas[:1], c.initial_state[None], ctrl,
-                                   control_spec=int(c.control_spec))
+        state, _ = rollout.rollout(c.model, c.datas[:1], c.initial_state[None], ctrl)
         model.vis.headlight.ambient[:] = 0.45
         model.vis.headlight.diffuse[:] = 0.6
         data = mujoco.MjData(model)

@@ -1,21 +1,23 @@
 """Place (paper, "Object Placing Task") on the KUKA iiwa scene with shelves.
 
-The robot starts holding a 5 cm cube under its gripper (a weld). An action is
-5 via-points `(x, y, z, gamma, T)`: gripper-tip position (the held cube's
-bottom), rotation about the vertical, duration in 4 ms steps (a minimum: the
-joints' speed limits may stretch it); bounds: x, y in
+The robot starts holding a 5 cm cube between the pads of its gripper (held by
+friction alone: `envs/assets/gripper.xml`). An action is 5 via-points `(x, y,
+z, gamma, T)`: position of the gripper's tip (site "ee": the palm, just above
+the held cube's top face), rotation about the vertical, duration in 4 ms steps
+(a minimum: the joints' speed limits may stretch it); bounds: x, y in
 kuka.VIA_LOW..VIA_HIGH (the reachable front workspace; a via-point out of reach
 makes the rollout invalid), z in [0.1, 0.35], gamma in [-pi/2, pi/2], T in [25,
 100]. After the last via-point is reached, the arm is given RELEASE_DELAY steps
-to settle there, then the weld is switched off (the same on every backend: an
-eq_active control channel) and the cube drops; the rollout goes on until it
-has come to rest. Behavior: the cube's final (x, y).
+to settle there, then the gripper opens and the cube drops; the rollout goes
+on until it has come to rest. Behavior: the cube's final (x, y).
 Quality: minus the drop, the height the cube lost between the release and its
 rest (the paper writes the distance but means that smaller drops are better),
-and 0 where it lost none: a cube let go while the grasp holds it pressed into a
-surface rises by a few millimetres when it is let go, which is a placement
-with no drop, not a better one (12-15% of the valid rollouts of a run rose).
-See `envs.manipulation` for what makes a rollout invalid.
+and 0 where it lost none (a cube held pressed onto a surface may rise by a
+millimetre when it is let go: a placement with no drop, not a better one).
+A held cube that hits a shelf or the table on the way can slip in the hand or
+be knocked out of it; a rollout whose cube is not in the hand (within
+HELD_TOLERANCE of where the grasp holds it) when it is to be let go is invalid:
+it placed nothing. See `envs.manipulation` for what else makes a rollout invalid.
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ VIA_POINTS = 5
 T_MIN, T_MAX = 25.0, 100.0
 Z_LOW, Z_HIGH = 0.1, 0.35
 MOTION_STEPS = 2 * VIA_POINTS * int(T_MAX)
-RELEASE_DELAY = 50  # steps (0.2 s) between reaching the last via-point and letting the cube go
+RELEASE_DELAY = 100  # steps (0.4 s) for the arm to settle at the last via-point before the cube is let go
+HELD_TOLERANCE = 0.02  # m: a cube farther than this from its place in the grasp has slipped out of the pads
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -48,15 +51,19 @@ class Place(Manipulation):
         """[B] int32: the step at which the cube is let go, RELEASE_DELAY after the last via-point is reached."""
         return jnp.clip(jnp.ceil(durations.sum(axis=1)).astype(jnp.int32) + RELEASE_DELAY, 0, self.horizon - 1)
 
-    def release_switch(self, durations: jax.Array) -> jax.Array:
+    def gripper_controls(self, durations: jax.Array) -> jax.Array:
         steps = jnp.arange(self.horizon)
-        return (steps < self.release_step(durations)[:, None]).astype(jnp.float32)[..., None]
+        closed = steps < self.release_step(durations)[:, None]
+        return jnp.where(closed, kuka.GRIP_CLOSED, kuka.GRIP_OPEN).astype(jnp.float32)[..., None]
 
-    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
-        release = self.release_step(durations)
-        z_release = jnp.take_along_axis(sensors[:, :, 5], jnp.maximum(release - 1, 0)[:, None], axis=1)[:, 0]
-        return sensors[:, -1, 3:5], -jnp.maximum(z_release - sensors[:, -1, 5], 0.0)
-
+    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        held_at = jnp.maximum(self.release_step(durations) - 1, 0)[:, None, None]
+        ee, cube = jnp.split(jnp.take_along_axis(sensors, held_at, axis=1)[:, 0, :6], 2, axis=1)
+        # At the start the arm points down holding the cube, as it does when settled at a via-point, so the
+        # start's cube-to-gripper offset is where the grasp holds the cube.
+        start = jnp.asarray(self._rollout.sensors_start)
+        held = jnp.linalg.norm(cube - ee - (start[3:6] - start[:3]), axis=1) <= HELD_TOLERANCE
+        return sensors[:, -1, 3:5], -jnp.maximum(cube[:, 2] - sensors[:, -1, 5], 0.0), held
 
 def make(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION_STEPS,
          settle: int = RELEASE_DELAY + SETTLE) -> Place:

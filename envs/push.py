@@ -40,8 +40,8 @@ class Push(Manipulation):
         targets = jnp.concatenate([via[..., :2], jnp.full((*via.shape[:2], 1), self.height)], axis=-1)
         return targets, via[..., 2], via[..., 3]
 
-    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array]:
-        return sensors[:, -1, 3:5], -self.ee_path_length(sensors)
+    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        return sensors[:, -1, 3:5], -self.ee_path_length(sensors), jnp.ones(sensors.shape[0], bool)
 
 
 def make(scene: str, height: float, backend: str = "auto", t_max: float = T_MAX,

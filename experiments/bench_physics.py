@@ -79,7 +79,7 @@ def main() -> None:
         rows_run = np.flatnonzero(np.asarray(plan.reached & plan.fits))
         simulated[pop] = len(rows_run)
         raw[pop], _ = _time(lambda ctrl=ctrl[rows_run]: rollout.rollout(
-            c.model, c.datas, c.initial_state[None], ctrl, control_spec=int(c.control_spec)), args.repeats)
+            c.model, c.datas, c.initial_state[None], ctrl), args.repeats)
         rows.append(("raw mujoco.rollout (controls given), host cores", pop, raw[pop], 0.0))
         if "mujoco" in args.backends:
             evaluate = jax.jit(c_task.evaluate)
