@@ -65,6 +65,7 @@ class Place(Manipulation):
         held = jnp.linalg.norm(cube - ee - (start[3:6] - start[:3]), axis=1) <= HELD_TOLERANCE
         return sensors[:, -1, 3:5], -jnp.maximum(cube[:, 2] - sensors[:, -1, 5], 0.0), held
 
+
 def make(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION_STEPS,
          settle: int = RELEASE_DELAY + SETTLE) -> Place:
     """The place task; `t_max`, `motion_steps` and `settle` shorten the horizon for quick checks."""

@@ -1,6 +1,7 @@
 """What uniform random actions do on the robot tasks: how many are valid and why not, how often they touch the
 object, whether the joints keep the datasheet's speed limits, how fast the gripper and the object move, and (Place)
-how settled the arm is when the cube is let go. C MuJoCo backend.
+how settled the arm is when the cube is let go and how often the cube was knocked out of the hand before. C MuJoCo
+backend.
 
     python experiments/random_actions.py [--actions 2000] [--tasks push_cube push_sphere place] [--out FILE.md]
 """
