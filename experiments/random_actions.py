@@ -12,12 +12,34 @@ import argparse
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import report
 from mujoco import rollout
 
 from envs import kuka, manipulation
 from mqd_jax import registry
+
+
+def _touched(model: mujoco.MjModel, initial_state: np.ndarray, ctrl: np.ndarray, until: np.ndarray) -> np.ndarray:
+    """[R] whether the hand (tool, pads) or the held object touched the table, a shelf or the floor in the first
+    until[r] steps of each control sequence ctrl [R, H, nu] (stepped one at a time to read the contacts)."""
+    def geoms(*prefixes: str) -> set[int]:
+        return {g for g in range(model.ngeom) if (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or "")
+                .startswith(prefixes)}
+
+    hand, surfaces = geoms("tool", "gripper_pad", "object"), geoms("table", "shelf", "floor")
+    data, out = mujoco.MjData(model), np.zeros(len(ctrl), bool)
+    for r in range(len(ctrl)):
+        mujoco.mj_setState(model, data, initial_state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        for t in range(until[r]):
+            data.ctrl[:] = ctrl[r, t]
+            mujoco.mj_step(model, data)
+            pairs = zip(data.contact.geom1[:data.ncon], data.contact.geom2[:data.ncon], strict=True)
+            if any((g1 in hand and g2 in surfaces) or (g2 in hand and g1 in surfaces) for g1, g2 in pairs):
+                out[r] = True
+                break
+    return out
 
 
 def _stats(name: str, num: int) -> dict[str, float]:
@@ -57,7 +79,13 @@ def _stats(name: str, num: int) -> dict[str, float]:
         out["gripper to last via-point at release, median (mm)"] = 1e3 * np.median(lag)
         out["gripper to last via-point at release, max (mm)"] = 1e3 * lag.max()
         _, _, held = task.outcome(jnp.asarray(sensors), plan.durations[runs])
-        out["cube knocked out of the hand before release (of simulated)"] = 1 - np.asarray(held).mean()
+        lost = ~np.asarray(held)
+        out["cube knocked out of the hand before release (of simulated)"] = lost.mean()
+        touched = _touched(model, c.initial_state, np.asarray(plan.ctrl, np.float64)[runs], release)
+        out["hand or cube touched a shelf or the table before release (of simulated)"] = touched.mean()
+        out["cube lost without touching one (of simulated)"] = (lost & ~touched).mean()
+        out["over a joint speed limit without touching one (of simulated)"] = (
+            np.any(qvel > limits, axis=1) & ~touched).mean()
     return out
 
 
