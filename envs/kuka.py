@@ -76,17 +76,45 @@ _DOWN = np.diag([-1.0, 1.0, -1.0])
 GRIPPERS = {"place": "gripper.xml"}
 GRIP_CLOSED, GRIP_OPEN = -0.02, 0.03
 GRASP_STEPS = 100  # steps (0.4 s) for a grasp to settle before a rollout starts
+# The sensors every scene reads, in this order: "ee_pos" (iiwa14.xml), the scene's "object_pos", then the arm's
+# touch sensors, which `load` adds: one contact sensor (data "found": its number of contacts) for every pair of
+# a geom of the arm (the subtree of link1, gripper included) and a geom of the world body (table, shelves, floor)
+# that can collide. The real iiwa's collision detection stops the arm when it feels such a touch, so a rollout
+# in which the arm touches the world is invalid (`envs.manipulation`). One sensor per geom pair because MJX
+# matches contact sensors by geom only (not by body or subtree).
+ARM_TOUCH = slice(6, None)
 
 
 @functools.cache
 def load(scene: str) -> mujoco.MjModel:
-    """The MjModel of `envs/assets/<scene>.xml`, with GRIPPERS[scene] attached to the tool (cached: one per
-    scene)."""
+    """The MjModel of `envs/assets/<scene>.xml`, with GRIPPERS[scene] attached to the tool and the arm's touch
+    sensors added last (cached: one per scene)."""
     spec = mujoco.MjSpec.from_file(os.path.join(ASSETS, f"{scene}.xml"))
     if scene in GRIPPERS:
         gripper = mujoco.MjSpec.from_file(os.path.join(ASSETS, GRIPPERS[scene]))
         spec.attach(gripper, frame=spec.body("tool").add_frame(), prefix="gripper_")
+    model = spec.compile()
+    if model.nsensordata != ARM_TOUCH.start:
+        raise ValueError(f"scene {scene!r}: expected the sensors ee_pos [3] and object_pos [3] only")
+    for arm, world in arm_world_pairs(model):
+        spec.add_sensor(type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_GEOM, objname=arm,
+                        reftype=mujoco.mjtObj.mjOBJ_GEOM, refname=world, intprm=[1, 0, 1])  # found, no reduction
     return spec.compile()
+
+
+def arm_world_pairs(model: mujoco.MjModel) -> list[tuple[str, str]]:
+    """The (arm geom, world geom) name pairs that can collide: a geom of a body below link1 (the gripper's
+    included) and a geom of the world body whose contype and conaffinity match either way."""
+    link0 = model.body("link0").id
+    arm = [g for g in range(model.ngeom)
+           if model.geom_bodyid[g] > link0 and model.body_rootid[model.geom_bodyid[g]] == link0]
+    world = [g for g in range(model.ngeom) if model.geom_bodyid[g] == 0]
+    contype, conaffinity = model.geom_contype, model.geom_conaffinity
+    pairs = [(model.geom(a).name, model.geom(w).name) for a in arm for w in world
+             if contype[a] & conaffinity[w] or contype[w] & conaffinity[a]]
+    if not all(a and w for a, w in pairs):
+        raise ValueError(f"every arm or world geom that can collide needs a name (for its touch sensor): {pairs}")
+    return pairs
 
 
 class Kinematics:

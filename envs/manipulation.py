@@ -14,7 +14,10 @@ rest.
 A rollout is invalid (valid = False) when a via-point is out of the arm's reach
 (IK ends farther than `kuka.IK_POSITION_TOLERANCE` from it; not simulated), when
 the speed-limited motion does not fit in `motion_steps` (not simulated), when
-the simulation diverges, when the object ends off the table top, when the
+the simulation diverges, when the arm or its gripper touches the table, a shelf
+or the floor at any step (the real iiwa's collision detection would stop it;
+such touches press with a median of hundreds of newtons in the rollouts that
+have them), when the object ends off the table top, when the
 object still moves faster than `REST_SPEED` at the end (it has not come to rest,
 so its final position is not yet known), or when the task's outcome says so
 (Place: the cube was no longer in the hand when it was to be let go).
@@ -184,7 +187,8 @@ class Manipulation(Task):
         low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
         speed = jnp.linalg.norm(obj - sensors[:, -2, 3:6], axis=1) / self._timestep
-        return behaviors, qualities, runs & finite & on_table & (speed <= REST_SPEED) & ok
+        untouched = (sensors[:, :, kuka.ARM_TOUCH] == 0).all(axis=(1, 2))
+        return behaviors, qualities, runs & finite & untouched & on_table & (speed <= REST_SPEED) & ok
 
     def layout(self) -> tuple[Region, ...]:
         """The table and any shelves (boxes of the scene named table*/shelf*, from its MJCF), the

@@ -1,7 +1,7 @@
 """What uniform random actions do on the robot tasks: how many are valid and why not, how often they touch the
-object, whether the joints keep the datasheet's speed limits, how fast the gripper and the object move, and (Place)
-how settled the arm is when the cube is let go and how often the cube was knocked out of the hand before. C MuJoCo
-backend.
+object, how often the arm touches the world, whether the joints keep the datasheet's speed limits, how fast the
+gripper and the object move, and (Place) how settled the arm is when the cube is let go and how often the cube was
+knocked out of the hand before. C MuJoCo backend.
 
     python experiments/random_actions.py [--actions 2000] [--tasks push_cube push_sphere place] [--out FILE.md]
 """
@@ -68,6 +68,9 @@ def _stats(name: str, num: int) -> dict[str, float]:
            "still moving at the end (of simulated)": (end_speed > manipulation.REST_SPEED).mean(),
            "joint speeds within limits (of simulated)": within_limits.mean(),
            "worst joint speed / limit": (qvel / limits).max(),
+           "arm touched the table, a shelf or the floor (invalid; of simulated)":
+               (sensors[:, :, kuka.ARM_TOUCH].max(axis=(1, 2)) > 0).mean(),
+           "joint speeds within limits (of valid)": within_limits[valid[runs]].mean(),
            "gripper peak speed median (m/s)": np.median(ee_speed), "gripper peak speed max (m/s)": ee_speed.max()}
     if name.startswith("push"):
         moved = np.linalg.norm(obj[:, -1, :2] - np.asarray(kuka.TABLE_CENTRE), axis=1) > 0.01

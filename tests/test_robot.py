@@ -125,7 +125,7 @@ def test_the_ik_jacobian_is_the_residuals_derivative():
         np.testing.assert_allclose(jac, brute, atol=1e-5)
 
 
-def test_a_released_cube_comes_to_rest_on_the_surface_below():
+def test_a_released_cube_comes_to_rest_on_the_surface_below_and_a_hand_that_touches_it_is_invalid():
     from envs import place
 
     task = registry.make("place", backend="mujoco")
@@ -136,27 +136,44 @@ def test_a_released_cube_comes_to_rest_on_the_surface_below():
     actions = jnp.array([via(0.6, 0.0, 0.25) * 5,  # over the table (top at 0)
                          via(0.7, -0.2, 0.3) * 4 + via(0.7, -0.3, 0.25),  # over the high shelf (top at 0.15)
                          via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.3, 0.2),  # the low shelf (0.08)
+                         via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.3, 0.135),  # the cube set down on it
                          via(0.7, -0.2, 0.3) * 4 + via(0.7, -0.3, 0.1)], jnp.float32)  # 5 cm into the high shelf
     ctrl = task.rollout_controls(actions)
-    qpos, sensors, finite = task._rollout(np.asarray(ctrl), np.ones(4, bool))
+    qpos, sensors, finite = task._rollout(np.asarray(ctrl), np.ones(5, bool))
     assert np.all(finite)
     cube = qpos[:, kuka.object_qpos_address(task._rollout.model):][:, :3]
-    np.testing.assert_allclose(cube[:, 2], [0.025, 0.175, 0.105, 0.175], atol=0.003)  # centre 2.5 cm above
+    np.testing.assert_allclose(cube[:, 2], [0.025, 0.175, 0.105, 0.105, 0.175], atol=0.003)  # centre 2.5 cm above
     release = np.asarray(task.release_step(task.plan(actions).durations))
-    held = sensors[np.arange(4), release - 1, 3:6]  # the cube while still held, just before release
+    held = sensors[np.arange(5), release - 1, 3:6]  # the cube while still held, just before release
     # The arm has settled at the last via-point before the release (the servos trail a moving target by
     # centimetres; RELEASE_DELAY later they are within millimetres), holding the cube under the gripper.
-    np.testing.assert_allclose(held[:3, :2], [[0.6, 0.0], [0.7, -0.3], [0.5, 0.3]], atol=0.003)
-    gripper = sensors[np.arange(3), release[:3] - 1, :3]
-    np.testing.assert_allclose(gripper, [[0.6, 0.0, 0.25], [0.7, -0.3, 0.25], [0.5, 0.3, 0.2]], atol=0.003)
-    # Driven 5 cm into the shelf, the held cube stops on it and the arm stalls above, the cube still in the
-    # hand: let go, it loses no height (quality 0), where a drop scores minus its height.
+    np.testing.assert_allclose(held[:4, :2], [[0.6, 0.0], [0.7, -0.3], [0.5, 0.3], [0.5, 0.3]], atol=0.003)
+    gripper = sensors[np.arange(4), release[:4] - 1, :3]
+    np.testing.assert_allclose(gripper, [[0.6, 0.0, 0.25], [0.7, -0.3, 0.25], [0.5, 0.3, 0.2], [0.5, 0.3, 0.135]],
+                               atol=0.003)
+    # Let go, a cube drops by its height above the surface (quality minus the drop); set down 2 mm above the
+    # shelf (the cube's bottom hangs 5.5 mm below the pads'), it loses none and the pads never touch it. Driven
+    # 5 cm into the high shelf, the held cube stops on it and the pads, sliding down the cube, press on the
+    # shelf: the iiwa's collision detection would stop that arm, so the rollout is invalid.
     b, q, valid = jax.jit(task.evaluate)(actions, None)
-    assert sensors[3, release[3] - 1, 2] > 0.19 and abs(held[3, 2] - cube[3, 2]) < 0.002
     np.testing.assert_allclose(q, -np.maximum(held[:, 2] - cube[:, 2], 0.0), atol=1e-4)
-    assert q[3] > -0.002 and np.all(np.asarray(q[:3]) < -0.04)
+    assert np.all(np.asarray(q[:3]) < -0.04) and q[3] > -0.004
     np.testing.assert_allclose(b, cube[:, :2], atol=1e-5)  # at rest: the last two steps agree to 10 um
-    assert place.VIA_POINTS == 5 and np.all(np.asarray(valid))
+    touches = sensors[:, :, kuka.ARM_TOUCH].sum(axis=2).max(axis=1)
+    assert touches[:4].tolist() == [0, 0, 0, 0] and touches[4] >= 1
+    # Brute force: the touch sensors count the contacts, read step by step, between a geom of the arm (the
+    # bodies below link1, the gripper's included) and a geom of the world body.
+    model, data = task._rollout.model, mujoco.MjData(task._rollout.model)
+    arm = {b for b in range(model.body("link1").id, model.nbody) if model.body_rootid[b] == model.body("link0").id}
+    for row in range(5):
+        mujoco.mj_setState(model, data, task._rollout.initial_state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        for t in range(ctrl.shape[1]):
+            data.ctrl[:] = ctrl[row, t]
+            mujoco.mj_step(model, data)
+            bodies = model.geom_bodyid[np.stack([data.contact.geom1, data.contact.geom2])]
+            count = sum(bool({int(a), int(b)} & arm) and 0 in (a, b) for a, b in bodies.T)
+            assert count == sensors[row, t, kuka.ARM_TOUCH].sum()
+    assert place.VIA_POINTS == 5 and np.asarray(valid).tolist() == [True, True, True, True, False]
 
 
 def test_the_grasp_holds_the_cube_by_friction_and_a_shelf_can_knock_it_out():
