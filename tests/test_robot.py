@@ -158,6 +158,9 @@ def test_a_released_cube_comes_to_rest_on_the_surface_below_and_a_hand_that_touc
     b, q, valid = jax.jit(task.evaluate)(actions, None)
     np.testing.assert_allclose(q, -np.maximum(held[:, 2] - cube[:, 2], 0.0), atol=1e-4)
     assert np.all(np.asarray(q[:3]) < -0.04) and q[3] > -0.004
+    # Driven into the shelf, the arm stalls above and the cube stays in the hand: let go, it loses no height
+    # (quality 0, whatever the validity).
+    assert sensors[4, release[4] - 1, 2] > 0.19 and abs(held[4, 2] - cube[4, 2]) < 0.002 and q[4] > -0.002
     np.testing.assert_allclose(b, cube[:, :2], atol=1e-5)  # at rest: the last two steps agree to 10 um
     touches = sensors[:, :, kuka.ARM_TOUCH].sum(axis=2).max(axis=1)
     assert touches[:4].tolist() == [0, 0, 0, 0] and touches[4] >= 1
