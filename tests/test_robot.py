@@ -115,6 +115,27 @@ def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend):
         assert np.all(v_s)
 
 
+@pytest.mark.parametrize("backend", ["mjx", "warp"])
+def test_the_backends_see_the_arm_touch_the_table_as_c_mujoco_does(backend):
+    # A push with its via-points 5 mm below the table's top: the tool presses on the table from its first
+    # via-point on, so the rollout is invalid on every backend (the touch sensors are MuJoCo contact sensors
+    # per geom pair, which MJX implements; by body or subtree it would not).
+    from envs import manipulation, push
+
+    if backend == "warp" and not manipulation.warp_installed():
+        pytest.skip("MuJoCo Warp is not installed (pip install -e .[gpu])")
+    actions = jnp.array([[0.45, 0.25, 0.0, 40, 0.5, 0.25, 0.0, 40]], jnp.float32)
+    touches, valid = {}, {}
+    for name in ("mujoco", backend):
+        task = push.make("push_cube", -0.005, backend=name, t_max=50, motion_steps=340, settle=20)
+        _, sensors, _ = jax.jit(task.simulate)(task.plan(actions).ctrl, jnp.ones(1, bool))
+        touches[name] = np.asarray(sensors[0, :, kuka.ARM_TOUCH]).sum(axis=0)  # contact-steps per geom pair
+        valid[name] = bool(jax.jit(task.evaluate)(actions, None)[2][0])
+    table = kuka.arm_world_pairs(kuka.load("push_cube")).index(("tool", "table"))
+    assert touches["mujoco"][table] > 100 and abs(touches[backend][table] - touches["mujoco"][table]) <= 5
+    assert valid == {"mujoco": False, backend: False}
+
+
 def test_the_ik_jacobian_is_the_residuals_derivative():
     kin = kuka.Kinematics(kuka.load("push_cube"))
     target, gamma = jnp.array([0.6, 0.1, 0.03]), jnp.float32(0.4)
