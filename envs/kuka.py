@@ -102,6 +102,12 @@ def load(scene: str) -> mujoco.MjModel:
     return spec.compile()
 
 
+def arm_touched(sensors: jax.Array) -> jax.Array:
+    """Sensor readings [B, H, ns] -> [B]: whether the arm touched the world at any step (an ARM_TOUCH sensor
+    counted a contact)."""
+    return (sensors[:, :, ARM_TOUCH] > 0).any(axis=(1, 2))
+
+
 def arm_world_pairs(model: mujoco.MjModel) -> list[tuple[str, str]]:
     """The (arm geom, world geom) name pairs that can collide: a geom of a body below link1 (the gripper's
     included) and a geom of the world body whose contype and conaffinity match either way."""

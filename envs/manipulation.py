@@ -187,7 +187,7 @@ class Manipulation(Task):
         low, high = jnp.asarray(kuka.TABLE_LOW), jnp.asarray(kuka.TABLE_HIGH)
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
         speed = jnp.linalg.norm(obj - sensors[:, -2, 3:6], axis=1) / self._timestep
-        untouched = (sensors[:, :, kuka.ARM_TOUCH] == 0).all(axis=(1, 2))
+        untouched = ~kuka.arm_touched(sensors)
         return behaviors, qualities, runs & finite & untouched & on_table & (speed <= REST_SPEED) & ok
 
     def layout(self) -> tuple[Region, ...]:

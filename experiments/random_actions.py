@@ -68,8 +68,7 @@ def _stats(name: str, num: int) -> dict[str, float]:
            "still moving at the end (of simulated)": (end_speed > manipulation.REST_SPEED).mean(),
            "joint speeds within limits (of simulated)": within_limits.mean(),
            "worst joint speed / limit": (qvel / limits).max(),
-           "arm touched the table, a shelf or the floor (invalid; of simulated)":
-               (sensors[:, :, kuka.ARM_TOUCH].max(axis=(1, 2)) > 0).mean(),
+           "arm touched the table, a shelf or the floor (invalid; of simulated)": kuka.arm_touched(sensors).mean(),
            "joint speeds within limits (of valid)": within_limits[valid[runs]].mean(),
            "gripper peak speed median (m/s)": np.median(ee_speed), "gripper peak speed max (m/s)": ee_speed.max()}
     if name.startswith("push"):
