@@ -43,7 +43,7 @@ import numpy as np
 import report
 
 from mqd_jax import Config, Imagination, IsoLine, ModelEmitter, presets, registry, results
-from mqd_jax.acquisition import Budgeted
+from mqd_jax.acquisition import Budgeted, Diverse
 from mqd_jax.model_emitter import ModelEmitterState
 from mqd_jax.sweep import run_batch, seed_keys
 from mqd_jax.task import Task
@@ -117,7 +117,9 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-always-anchored": _replaced(anchoring="nearest"),
     "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
     "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
+    **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
+    "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-short-training": _replaced(batch_size=64, num_batches=100),
     "mqd-half-training": _HALF_TRAINING,

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import neighbours
+from mqd_jax import neighbours as neighbours_lib
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.repertoire import Repertoire
 
@@ -73,6 +73,8 @@ class Judged:
       nearest_quality: [N] that skill's quality (0 if none).
       novelty: [N] nov~; improvement: [N] qua~ (`predicted_scores`; a rule
         that does not read them costs nothing: XLA drops unused work).
+      neighbours: [N, K] distances from b~ to its K nearest skills, ascending
+        (inf where fewer exist; its first column is `distance`), or None.
     """
 
     behaviors: jax.Array
@@ -82,6 +84,7 @@ class Judged:
     nearest_quality: jax.Array
     novelty: jax.Array
     improvement: jax.Array
+    neighbours: jax.Array | None = None
 
 
 def passes(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, t_qua: jax.Array) -> jax.Array:
@@ -153,36 +156,45 @@ def _check_pool_factor(rule: object) -> None:
         raise ValueError(f"{type(rule).__name__}.pool_factor={value!r} is invalid: expected an int >= 1")
 
 
-def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int) -> jax.Array:
+def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,
+                   neighbours: int = 1) -> jax.Array:
     """[num] pool rows chosen one at a time against an imagined repertoire; the first chosen first.
 
     Each step takes, among the candidates not yet chosen, first those the
     inner emitter wants, then those predicted to open a niche, i.e. whose
     optimistic distance dist~ + beta * spread to the nearest behavior of the
     repertoire and of the wanted candidates chosen so far exceeds `t_dist`,
-    by the largest such distance; then the rest by the largest predicted
-    quality improvement over that nearest behavior. NaN predictions come last.
+    by the largest optimistic mean distance to the `neighbours` nearest such
+    behaviors (1: the distance to the nearest; more: a novelty, which looks past
+    the nearest one to how crowded the predicted behavior's surroundings are,
+    needing `judged.neighbours` of at least that many columns); then the rest by
+    the largest predicted quality improvement over that nearest behavior. NaN
+    predictions come last.
     """
     b, q = judged.behaviors, judged.qualities
     optimism = beta * judged.spread
     finite = jnp.isfinite(b).all(axis=1) & jnp.isfinite(q) & jnp.isfinite(optimism)
+    near = judged.distance[:, None] if neighbours == 1 else judged.neighbours[:, :neighbours]  # [N, M] ascending
 
     def choose(carry: tuple[jax.Array, jax.Array, jax.Array], _: None) -> tuple[tuple[jax.Array, ...], jax.Array]:
-        dist, nearest_quality, free = carry
-        reach = dist + optimism
-        opens = reach > t_dist
-        value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, reach, q - nearest_quality)), -jnp.inf)
+        near, nearest_quality, free = carry
+        opens = finite & (near[:, 0] + optimism > t_dist)
+        known = jnp.isfinite(near)
+        count = known.sum(axis=1)
+        mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
+        value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, mean + optimism, q - nearest_quality)), -jnp.inf)
         tier = jnp.where(free, 2 * wanted.astype(jnp.int32) + opens.astype(jnp.int32), -1)
         best = tier == tier.max()
         pick = jnp.argmax(jnp.where(best, value, -jnp.inf))
         pick = jnp.where(best[pick], pick, jnp.argmax(best)).astype(jnp.int32)  # all of the tier at -inf: the first
         # A wanted candidate is rolled out: later ones are judged against its predicted behavior too.
-        to_pick = jnp.sqrt(neighbours.sq_dists(b, b[pick][None])[:, 0])
-        closer = wanted[pick] & (to_pick < dist)
-        return (jnp.where(closer, to_pick, dist), jnp.where(closer, q[pick], nearest_quality),
+        to_pick = jnp.sqrt(neighbours_lib.sq_dists(b, b[pick][None])[:, 0])
+        merged = jnp.sort(jnp.concatenate([near, to_pick[:, None]], axis=1), axis=1)[:, :neighbours]
+        closest = wanted[pick] & (to_pick < near[:, 0])
+        return (jnp.where(wanted[pick], merged, near), jnp.where(closest, q[pick], nearest_quality),
                 free.at[pick].set(False)), pick
 
-    start = (judged.distance, judged.nearest_quality, jnp.ones_like(wanted))
+    start = (near, judged.nearest_quality, jnp.ones_like(wanted))
     _, rows = jax.lax.scan(choose, start, None, length=num, unroll=4)
     return rows
 
@@ -190,16 +202,21 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
 @dataclasses.dataclass(frozen=True)
 class Diverse:
     """Batch-diverse optimistic ranking: of `pool_factor` x num candidates, roll out num chosen one at a time
-    (`greedy_diverse`, optimism `beta` x the ensemble's spread); during warm-up the pool's first num."""
+    (`greedy_diverse`, optimism `beta` x the ensemble's spread, ranked by the mean distance to the `neighbours`
+    nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`); during warm-up the pool's first
+    num."""
 
     pool_factor: int = 8
     beta: float = 1.0
+    neighbours: int = 1
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
         if not (isinstance(self.beta, (int, float)) and not isinstance(self.beta, bool) and self.beta >= 0
                 and math.isfinite(self.beta)):
             raise ValueError(f"Diverse.beta={self.beta!r} is invalid: expected a finite float >= 0")
+        if not (isinstance(self.neighbours, int) and not isinstance(self.neighbours, bool) and self.neighbours >= 1):
+            raise ValueError(f"Diverse.neighbours={self.neighbours!r} is invalid: expected an int >= 1")
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
@@ -208,7 +225,11 @@ class Diverse:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
-        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num)
+        columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
+        if self.neighbours > 1 and columns < self.neighbours:
+            raise ValueError(f"Diverse.neighbours={self.neighbours} needs the distances to that many nearest skills; "
+                             f"the model's judgement has {columns} (ModelEmitter.k)")
+        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours)
         return _after_warm_up(top, wanted, warm_up, num)
 
 

@@ -225,8 +225,9 @@ class ModelEmitter(Emitter):
         sq, slots = repertoire_lib.k_nearest(repertoire, behaviors, self.k)  # one search
         nearest_quality = jnp.where(slots[:, 0] >= 0, repertoire.qualities[jnp.maximum(slots[:, 0], 0)], 0.0)
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
-        return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(sq[:, 0]), nearest_quality, novelty,
-                                  improvement)
+        distances = jnp.sqrt(sq)
+        return acquisition.Judged(behaviors, qualities, spread, distances[:, 0], nearest_quality, novelty,
+                                  improvement, distances)
 
     def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
         """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")

@@ -28,15 +28,70 @@ def repertoire_of(behaviors, qualities, actions=None, capacity=8):
                        count=jnp.int32(n))
 
 
-def judged(behaviors, qualities, rep, spread=None):
-    """A Judged pool whose distance to the nearest skill is computed by brute force."""
+def judged(behaviors, qualities, rep, spread=None, k=5):
+    """A Judged pool whose distances to the nearest skill and to the k nearest are computed by brute force."""
     b = np.asarray(behaviors, np.float32)
     n = b.shape[0]
     skills = np.asarray(rep.behaviors[:int(rep.count)])
     d = np.sqrt(((b[:, None] - skills[None]) ** 2).sum(-1))
+    near = np.pad(np.sort(d, axis=1), ((0, 0), (0, max(k - d.shape[1], 0))), constant_values=np.inf)[:, :k]
     return Judged(jnp.asarray(b), jnp.asarray(qualities, jnp.float32), jnp.zeros(n) if spread is None else
                   jnp.asarray(spread), jnp.asarray(d.min(1)), jnp.asarray(rep.qualities)[d.argmin(1)], jnp.zeros(n),
-                  jnp.zeros(n))
+                  jnp.zeros(n), jnp.asarray(near))
+
+
+def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours):
+    """greedy_diverse written out: each step scores every free candidate against the repertoire's skills and the
+    wanted candidates chosen so far."""
+    imagined_b, imagined_q = list(skills), list(skill_qualities)
+    free, rows = np.ones(len(b), bool), []
+    for _ in range(num):
+        best = None
+        for i in np.flatnonzero(free):
+            d = np.linalg.norm(np.asarray(imagined_b) - b[i], axis=1)
+            near = np.sort(d)[:neighbours]
+            opens = near[0] + beta * spread[i] > t_dist
+            value = near.mean() + beta * spread[i] if opens else q[i] - imagined_q[int(np.argmin(d))]
+            rank = (2 * wanted[i] + opens, value)
+            if best is None or rank > best[0]:
+                best = (rank, i)
+        pick = best[1]
+        rows.append(pick)
+        free[pick] = False
+        if wanted[pick]:
+            imagined_b.append(b[pick])
+            imagined_q.append(q[pick])
+    return rows
+
+
+@pytest.mark.parametrize("neighbours, skills", [(1, 6), (3, 6), (3, 2)])
+def test_greedy_diverse_matches_a_reference(neighbours, skills):
+    """Random pools: the scan's choice equals the rule written out, for the nearest distance and for the mean of
+    the 3 nearest (also with fewer skills than that: the mean over those there are)."""
+    key = jax.random.split(jax.random.PRNGKey(neighbours + skills), 4)
+    rep = repertoire_of(np.asarray(jax.random.uniform(key[0], (skills, 2))),
+                        np.asarray(jax.random.uniform(key[1], (skills,))))
+    b = np.asarray(jax.random.uniform(key[2], (30, 2)))
+    q = np.asarray(jax.random.uniform(key[3], (30,)))
+    spread = np.linspace(0.0, 0.05, 30).astype(np.float32)
+    wanted = np.arange(30) % 4 != 0
+    pool = judged(b, q, rep, spread, k=5)
+    rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours)
+    expected = greedy_reference(b, q, spread, np.asarray(rep.behaviors[:skills]), np.asarray(rep.qualities[:skills]),
+                                wanted, 0.1, 0.5, 12, neighbours)
+    np.testing.assert_array_equal(rows, expected)
+
+
+def test_greedy_diverse_by_novelty_by_hand():
+    """Candidate 0 is a little farther from its nearest skill, candidate 1 in emptier surroundings: 0 goes first
+    ranked by the nearest distance, 1 ranked by the mean distance to the 2 nearest."""
+    rep = repertoire_of([[0.0, 0.0], [0.0, 0.1], [1.0, 0.0], [1.0, 0.9]], [0.5] * 4)
+    pool = judged([[0.31, 0.0], [0.7, 0.0]], [0.5, 0.5], rep)  # nearest 0.31 / 0.3; second nearest 0.326 / 0.7
+    wanted = jnp.ones(2, bool)
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, 2), [1, 0])
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, 1), [0, 1])
+    with pytest.raises(ValueError, match=r"Diverse\.neighbours=6 needs"):
+        Diverse(1, neighbours=6).select(pool, rep, wanted, jnp.bool_(False), Config().params(), 2)
 
 
 def test_ensemble_members_train_as_independent_networks(linear_task):
@@ -144,7 +199,7 @@ def test_diverse_selects_num_distinct_rows_and_passes_warm_up_through():
 
 
 @pytest.mark.parametrize("kw, field", [(dict(pool_factor=0), "pool_factor"), (dict(beta=-1.0), "beta"),
-                                       (dict(beta=float("nan")), "beta")])
+                                       (dict(beta=float("nan")), "beta"), (dict(neighbours=0), "neighbours")])
 def test_diverse_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Diverse.{field}="):
         Diverse(**kw)

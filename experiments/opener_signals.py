@@ -1,0 +1,142 @@
+"""Which signals tell a niche-opener from the rest of a pool, and how rugged a task is under QD's mutation.
+
+    python experiments/opener_signals.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 2]
+        [--pools 4] [--out docs/data/opener_signals.md]
+
+For each task and seed: a run of the "mqd" preset for `--generations` generations, then `--pools`
+pools of 8 x 100 IsoLine children of its final repertoire (what "mqd" chooses its rollouts
+from), every child rolled out. An *opener* is a valid child whose true behavior lies farther than
+t_dist from every skill (it would open a niche). For each signal, over the pools:
+
+  * AUC: P(an opener scores higher than a non-opener), ties 1/2 (0.5 = chance);
+  * precision@100: the fraction of openers among the 100 best-scored children (what a
+    generation of 100 rollouts chosen by that signal alone would open; the pool's base rate and
+    the oracle's, which ranks by the true outcome, bound it).
+
+Signals: the run's model (plain and anchored predictions, as `ModelEmitter.predictions`) scored
+by the distance to the nearest skill (what `Diverse` ranks by) or by a smoothed novelty (mean
+distance to the 5 nearest skills; minus the number of skills within 0.1); the parent's
+novelty (the repertoire's, by which IsoLine draws parents); networks trained afresh for 2000
+Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts. And
+the task's ruggedness: quantiles of the distance between a child's behavior and its first
+parent's. 2D tasks (and the planar arm of sample_efficiency.py): every child is rolled out.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import report
+from sample_efficiency import make_arm
+
+from mqd_jax import Config, model, presets, registry, run_mqd, selection
+from mqd_jax import repertoire as repertoire_lib
+from mqd_jax.archive import Archive
+from mqd_jax.run import get_task
+
+POOL, CHOSEN = 800, 100
+
+
+def auc(score: np.ndarray, label: np.ndarray) -> float:
+    """P(score of a positive > score of a negative), ties 1/2; NaN without both."""
+    pos, neg = score[label], score[~label]
+    if len(pos) == 0 or len(neg) == 0:
+        return float("nan")
+    return float(((pos[:, None] > neg[None]) + 0.5 * (pos[:, None] == neg[None])).mean())
+
+
+def _scores(predicted: np.ndarray, skills: np.ndarray) -> dict[str, np.ndarray]:
+    """Scores [N] of predicted behaviors [N, d] against the repertoire's behaviors [n, d]: nearest distance,
+    mean distance to the 5 nearest, minus the count within 0.1."""
+    d = np.linalg.norm(predicted[:, None] - skills[None], axis=-1)
+    nearest = np.sort(d, axis=1)
+    return {"nearest": nearest[:, 0], "novelty-5": nearest[:, :5].mean(1), "-count(0.1)": -(d < 0.1).sum(1)}
+
+
+def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: object, key: jax.Array) -> model.ModelState:
+    """A network of `hidden` units trained afresh for 2000 steps of 16 rows on `data`."""
+    state = model.init(key, hidden, task)
+    return jax.jit(lambda s: model.train(s, jax.random.fold_in(key, 1), data, task, 1e-3, 16, 2000))(state)[0]
+
+
+def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[dict[str, list], dict[str, float]]:
+    """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quantiles and the base rate."""
+    cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations)
+    state, _ = run_mqd(jax.random.PRNGKey(seed), cfg)
+    task, emitter, params, rep = get_task(cfg), presets.emitter(cfg), cfg.params(), state.repertoire
+    n, filled = int(rep.count), min(int(state.archive.total), state.archive.qualities.shape[0])
+    skills = np.asarray(rep.behaviors[:n])
+    arch = state.archive
+    both = Archive(jnp.concatenate([rep.actions[:n], arch.actions[:filled]]),
+                   jnp.concatenate([rep.behaviors[:n], arch.behaviors[:filled]]),
+                   jnp.concatenate([rep.qualities[:n], arch.qualities[:filled]]), jnp.int32(n + filled))
+    key = jax.random.PRNGKey(1000 + seed)
+    fresh = {f"fresh {h} units, {name}": _fresh(data, h, task, key)
+             for h in (32, 256) for name, data in (("repertoire", rep), ("repertoire + archive", both))}
+    out: dict[str, list] = {}
+    distances, openers = [], []
+    for p in range(pools):
+        k = jax.random.fold_in(key, p)
+        pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params, POOL)
+        # IsoLine's first parents, drawn as its propose draws them.
+        parents = np.asarray(selection.sample_parents(jax.random.split(k, 3)[1], rep.novelty, rep.valid, 2 * POOL))
+        parents = parents[:POOL]
+        behaviors, _, valid = task.evaluate(pool.actions, k)
+        true_d = np.sqrt(np.asarray(repertoire_lib.k_nearest(rep, behaviors, 1)[0][:, 0]))
+        opener = (true_d > float(params.t_dist)) & np.asarray(valid)
+        openers.append(opener.mean())
+        distances.append(np.linalg.norm(np.asarray(behaviors) - np.asarray(rep.behaviors)[parents], axis=1)[
+            np.asarray(valid)])
+        plain, anchored = emitter.predictions(state.emitter, pool.actions, rep, task)
+        scored = {f"run's model, {name}, {s}": v
+                  for name, y in (("plain", plain), ("anchored", anchored))
+                  for s, v in _scores(np.asarray(y.mean(0)[:, :-1]), skills).items()}
+        scored |= {f"{name}, nearest": _scores(np.asarray(model.predict(m, pool.actions, task)[0]), skills)["nearest"]
+                   for name, m in fresh.items()}
+        scored["parent's novelty"] = np.asarray(rep.novelty)[parents]
+        scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
+        for name, score in scored.items():
+            top = np.argsort(-score, kind="stable")[:CHOSEN]
+            out.setdefault(name, []).append((auc(score, opener), float(opener[top].mean())))
+    quantiles = np.quantile(np.concatenate(distances), [0.25, 0.5, 0.75])
+    return out, {"base rate": float(np.mean(openers)), **{f"q{q}": v for q, v in zip((25, 50, 75), quantiles,
+                                                                                         strict=True)}, "skills": n}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
+    parser.add_argument("--generations", type=int, default=100)
+    parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--pools", type=int, default=4)
+    parser.add_argument("--out", default="docs/data/opener_signals.md")
+    args = parser.parse_args()
+    if "arm" in args.tasks and not registry.is_task("arm"):
+        registry.register("arm", make_arm)
+    lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
+             f"{args.generations} --seeds {args.seeds} --pools {args.pools}`", "",
+             f"Machine: {report.machine()}.", "",
+             f"After {args.generations} generations of \"mqd\": {args.pools} pools of {POOL} IsoLine children per "
+             f"seed, all rolled out; an opener would open a niche. AUC: P(opener scores higher), 0.5 = chance; "
+             f"precision@{CHOSEN}: openers among the {CHOSEN} best-scored. Mean over seeds and pools.", ""]
+    for task_name in args.tasks:
+        per_seed = [signals(task_name, args.generations, seed, args.pools) for seed in range(args.seeds)]
+        stats = {k: np.mean([s[1][k] for s in per_seed]) for k in per_seed[0][1]}
+        lines += [f"### {task_name}", "",
+                  f"Skills after {args.generations} generations: {stats['skills']:.0f}; openers in a pool (base "
+                  f"rate): {stats['base rate']:.3f}; distance from a valid child's behavior to its first parent's "
+                  f"(quartiles): {stats['q25']:.3f} / {stats['q50']:.3f} / {stats['q75']:.3f} (t_dist 0.02).", "",
+                  "| signal | AUC | precision@100 |", "|---|---|---|"]
+        for name in per_seed[0][0]:
+            values = np.array([v for s in per_seed for v in s[0][name]], float)
+            lines.append(f"| {name} | {np.nanmean(values[:, 0]):.3f} | {values[:, 1].mean():.3f} |")
+        lines.append("")
+        print(f"{task_name}: done", flush=True)
+    report.write(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()
