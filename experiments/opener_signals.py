@@ -36,6 +36,7 @@ from mqd_jax import Config, model, presets, registry, run_mqd, selection
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.archive import Archive
 from mqd_jax.run import get_task
+from mqd_jax.task import Task
 
 POOL, CHOSEN = 800, 100
 
@@ -56,14 +57,15 @@ def _scores(predicted: np.ndarray, skills: np.ndarray) -> dict[str, np.ndarray]:
     return {"nearest": nearest[:, 0], "novelty-5": nearest[:, :5].mean(1), "-count(0.1)": -(d < 0.1).sum(1)}
 
 
-def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: object, key: jax.Array) -> model.ModelState:
+def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: Task, key: jax.Array) -> model.ModelState:
     """A network of `hidden` units trained afresh for 2000 steps of 16 rows on `data`."""
     state = model.init(key, hidden, task)
     return jax.jit(lambda s: model.train(s, jax.random.fold_in(key, 1), data, task, 1e-3, 16, 2000))(state)[0]
 
 
 def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[dict[str, list], dict[str, float]]:
-    """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quantiles and the base rate."""
+    """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
+    number of skills."""
     cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations)
     state, _ = run_mqd(jax.random.PRNGKey(seed), cfg)
     task, emitter, params, rep = get_task(cfg), presets.emitter(cfg), cfg.params(), state.repertoire
