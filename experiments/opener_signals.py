@@ -18,8 +18,9 @@ by the distance to the nearest skill (what `Diverse` ranks by) or by a smoothed 
 distance to the 5 nearest skills; minus the number of skills within 0.1); the parent's
 novelty (the repertoire's, by which IsoLine draws parents); networks trained afresh for 2000
 Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts. And
-the task's ruggedness: quantiles of the distance between a child's behavior and its first
-parent's. 2D tasks (and the planar arm of sample_efficiency.py): every child is rolled out.
+the task's ruggedness: quartiles of the distance between a child's behavior and its first
+parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
+sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 """
 
 from __future__ import annotations
