@@ -189,7 +189,10 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         pick = jnp.where(best[pick], pick, jnp.argmax(best)).astype(jnp.int32)  # all of the tier at -inf: the first
         # A wanted candidate is rolled out: later ones are judged against its predicted behavior too.
         to_pick = jnp.sqrt(neighbours_lib.sq_dists(b, b[pick][None])[:, 0])
-        merged = jnp.sort(jnp.concatenate([near, to_pick[:, None]], axis=1), axis=1)[:, :neighbours]
+        # Insert to_pick into each sorted row: column j becomes max(to_pick, old column j - 1) where to_pick is
+        # below it (no sort; a NaN distance changes nothing).
+        below = jnp.concatenate([jnp.full_like(near[:, :1], -jnp.inf), near[:, :-1]], axis=1)
+        merged = jnp.where(to_pick[:, None] < near, jnp.maximum(to_pick[:, None], below), near)
         closest = wanted[pick] & (to_pick < near[:, 0])
         return (jnp.where(wanted[pick], merged, near), jnp.where(closest, q[pick], nearest_quality),
                 free.at[pick].set(False)), pick
