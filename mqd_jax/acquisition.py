@@ -167,10 +167,14 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     by the largest optimistic mean distance to the `neighbours` nearest such
     behaviors (1: the distance to the nearest; more: a novelty, which looks past
     the nearest one to how crowded the predicted behavior's surroundings are,
-    needing `judged.neighbours` of at least that many columns); then the rest by
+    needing `judged.neighbours` of at least that many columns, else ValueError); then the rest by
     the largest predicted quality improvement over that nearest behavior. NaN
     predictions come last.
     """
+    columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
+    if neighbours > 1 and columns < neighbours:
+        raise ValueError(f"Diverse.neighbours={neighbours} needs the distances to that many nearest skills; "
+                         f"the model's judgement has {columns} (ModelEmitter.k)")
     b, q = judged.behaviors, judged.qualities
     optimism = beta * judged.spread
     finite = jnp.isfinite(b).all(axis=1) & jnp.isfinite(q) & jnp.isfinite(optimism)
@@ -228,10 +232,6 @@ class Diverse:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
-        columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
-        if self.neighbours > 1 and columns < self.neighbours:
-            raise ValueError(f"Diverse.neighbours={self.neighbours} needs the distances to that many nearest skills; "
-                             f"the model's judgement has {columns} (ModelEmitter.k)")
         top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours)
         return _after_warm_up(top, wanted, warm_up, num)
 
