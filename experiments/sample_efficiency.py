@@ -2,11 +2,12 @@
 
     python experiments/sample_efficiency.py [--tasks obstacle2d object2d] [--seeds 10]
         [--compositions qd mqd-paper mqd ...] [--out docs/data/sample_efficiency_2d.md]
-    python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--out ...]   (runs of `mqd sweep`)
+    python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--run COMPOSITION ...] [--out ...]
 
 Every composition runs `--seeds` seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the
 task's Table II settings, vmapped in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
-presets `mqd sweep` wrote to those folders instead of running (the robot tasks, whose runs take long).
+presets `mqd sweep` wrote to those folders instead of running (the robot tasks, whose runs take long);
+`--run` adds compositions run here on the same tasks and seeds.
 
 For each task and composition, from the mean over seeds of coverage [G] and rollouts spent [G]:
   * rollouts to QD: the rollouts at which the mean coverage first reaches QD's final mean
@@ -42,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import Config, Imagination, IsoLine, ModelEmitter, presets, registry, results
+from mqd_jax import Config, Fallback, Imagination, IsoLine, ModelEmitter, Steering, presets, registry, results
 from mqd_jax.acquisition import Budgeted, Diverse
 from mqd_jax.model_emitter import ModelEmitterState
 from mqd_jax.sweep import run_batch, seed_keys
@@ -101,6 +102,34 @@ def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], 
     return lambda cfg: dataclasses.replace(cfg, algorithm=build(cfg), **changes)
 
 
+@dataclasses.dataclass(frozen=True)
+class BlindSteering(Steering):
+    """Steering's parents without its Jacobian (the ablation of "mqd-steered-quarter"): each drawn parent's
+    child is an iso mutation of it (`params.iso_sigma`), as IsoLine's without the line term."""
+
+    def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int) -> jax.Array:
+        k_target, k_step, k_iso = jax.random.split(key, 3)
+        parents, _ = self.aims(k_target, k_step, repertoire, task, params, num)
+        low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
+        mutation = params.iso_sigma * (high - low) * jax.random.normal(k_iso, (num, low.shape[0]))
+        return jnp.clip(repertoire.actions[parents] + mutation, low, high)
+
+
+@dataclasses.dataclass(frozen=True)
+class VoronoiIsoLine(IsoLine):
+    """QD whose last `share` of children are `BlindSteering`'s (Voronoi parents, iso mutation): the model-free
+    reference for the steering compositions."""
+
+    share: float = 0.25
+
+    def propose(self, key: jax.Array, state: Any, repertoire: Any, task: Task, params: Any, num: int) -> Any:
+        proposal = super().propose(key, state, repertoire, task, params, num)
+        count = round(self.share * num)
+        children = BlindSteering().steer(jax.random.fold_in(key, 2), repertoire, None, task, params, count)
+        tail = jnp.where(repertoire.count > 0, children, proposal.actions[num - count:])
+        return proposal.replace(actions=proposal.actions.at[num - count:].set(tail))
+
+
 # Cheaper training schedules: half the Adam steps; a quarter of the steps on 4x wider batches.
 _HALF_TRAINING = _replaced(num_batches=250)
 _WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
@@ -121,6 +150,16 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
+    "mqd-steered": _replaced(steering=Steering()),
+    "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
+    "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
+    "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
+    "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
+    "mqd-voronoi-mutation-quarter": _replaced(steering=BlindSteering(share=0.25)),
+    "mqd-voronoi-mutation-half": _replaced(steering=BlindSteering(share=0.5)),
+    "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
+    "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),
+    "mqd-steered-pursuit-80": _replaced(steering=Steering(share=0.8, pursuit=Fallback())),
     "mqd-short-training": _replaced(batch_size=64, num_batches=100),
     "mqd-half-training": _HALF_TRAINING,
     "mqd-wide-batches": _WIDE_BATCHES,
@@ -148,7 +187,7 @@ def _run(task: str, name: str, seeds: int, generations: int | None) -> dict[str,
 
 
 # The model's diagnostics (README, "Metrics"), averaged over seeds and the generations past warm-up.
-DIAGNOSTICS = ("opener_auc", "model_share")
+DIAGNOSTICS = ("opener_auc", "model_share", "steered", "steering_share")
 
 
 def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, Any]:
@@ -221,6 +260,8 @@ def main() -> None:
     parser.add_argument("--sweep", nargs="+", default=None,
                         help="read the presets of `mqd sweep` folders instead of running; DIR=SUFFIX names "
                         "that folder's runs PRESET-SUFFIX (a variant beside the same presets in another folder)")
+    parser.add_argument("--run", nargs="+", default=None, choices=list(COMPOSITIONS),
+                        help="with --sweep: also run these compositions on the sweeps' tasks and seeds")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
@@ -239,6 +280,12 @@ def main() -> None:
                      for alg, r in by.items()})
         seeds = {len(r.keys) for runs in loaded for by in runs.values() for r in by.values()}
         command = f"python experiments/sample_efficiency.py --sweep {' '.join(args.sweep)}"
+        if args.run:  # beside the sweeps' runs, on their tasks and seeds (`mqd sweep` runs sweep.seed_keys too)
+            if len(seeds) != 1:
+                raise SystemExit(f"--run needs sweeps of one number of seeds, not {sorted(seeds)}")
+            for task, by in curves.items():
+                by.update({name: _run(task, name, next(iter(seeds)), args.generations) for name in args.run})
+            command += f" --run {' '.join(args.run)}"
     else:
         for task in args.tasks:
             robot = registry.make(task).table_ii_column == "robot"
@@ -257,11 +304,12 @@ def main() -> None:
              "coverage. Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
              "final value). Quality = the repertoire's mean quality after QD's rollouts."
              + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's.")
-             + " Opener AUC, model share: the model's diagnostics `opener_auc` and `model_share` (README, "
-             "\"Metrics\"; 0.5 = chance), averaged over seeds and the generations past warm-up.",
+             + " Opener AUC, model share, steered, steering share: the model's diagnostics `opener_auc`, "
+             "`model_share`, `steered` (rollouts per generation) and `steering_share` (README, \"Metrics\"; AUC 0.5 = "
+             "chance), averaged over seeds and the generations past warm-up.",
              ""]
     header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality", "final coverage",
-              "rollouts", "ms/gen", "x QD", "opener AUC", "model share"]
+              "rollouts", "ms/gen", "x QD", "opener AUC", "model share", "steered", "steering share"]
     for task, by in curves.items():
         lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(_row(n, c, by["qd"], not args.sweep)) + " |" for n, c in by.items()]

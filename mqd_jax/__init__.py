@@ -8,6 +8,7 @@ from mqd_jax.imagination import Imagination
 from mqd_jax.model_emitter import Fallback, ModelEmitter
 from mqd_jax.repertoire import AddStatus
 from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
+from mqd_jax.steering import Steering
 from mqd_jax.task import Task
 
 __all__ = [
@@ -26,6 +27,7 @@ __all__ = [
            "Params",
            "Proposal",
            "State",
+           "Steering",
            "Task",
            "Threshold",
            "Uniform",

@@ -61,6 +61,9 @@ class Imagination(ModelEmitter):
         if self.fallback is not None:
             raise ValueError(f"Imagination.fallback={self.fallback!r} is invalid: expected None (the imagined "
                              "rows are not a ranking a Fallback could share)")
+        if self.steering is not None:
+            raise ValueError(f"Imagination.steering={self.steering!r} is invalid: expected None (imagined "
+                             "generations draw their own pools)")
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:

@@ -27,6 +27,12 @@ Two options change what the model says and how much it is trusted:
   share pursues whichever side's rollouts have recently opened new niches
   more often (adaptive pursuit), so a model that does not
   help costs at most the floor's share of the rollouts.
+
+And one changes what the model is asked about: `steering` (`steering.Steering`)
+replaces the last rows of the inner emitter's pool with children the model's
+Jacobian aims at empty behavior space. The inner emitter's `update` then sees
+its proposal with those rows' actions replaced (IsoLine and Uniform keep no
+per-candidate state); the fallback's rows are always the inner emitter's own.
 """
 
 from __future__ import annotations
@@ -41,7 +47,9 @@ from flax import struct
 from mqd_jax import acquisition, model
 from mqd_jax import archive as archive_lib
 from mqd_jax import repertoire as repertoire_lib
+from mqd_jax import steering as steering_lib
 from mqd_jax.emitters import Emitter, Evaluated, Proposal
+from mqd_jax.pursuit import Fallback, running_average
 from mqd_jax.repertoire import AddStatus, Repertoire
 from mqd_jax.task import Task
 
@@ -54,57 +62,6 @@ TRAINING_DATA = ("repertoire", "rollouts")
 ANCHORING = ("none", "nearest", "auto")
 # The weight of a generation's held-out error in anchoring="auto"'s averages.
 ERROR_AVERAGING = 0.2
-
-
-@struct.dataclass
-class FallbackState:
-    """Adaptive pursuit's state.
-
-    Attributes:
-      share: float32, the model's share of the next generation's rollouts.
-      success: [2] float32, exponential averages of the fraction of rollouts that
-        opened a niche: the model's choice, the inner emitter's (NaN before the first).
-    """
-
-    share: jax.Array
-    success: jax.Array
-
-
-@dataclasses.dataclass(frozen=True)
-class Fallback:
-    """How far a `ModelEmitter` trusts its model: adaptive pursuit (Thierens 2005) between the model's choice
-    and the inner emitter's own candidates.
-
-    After each generation past warm-up, each side's success (the fraction of
-    its rollouts that opened a niche, `AddStatus.ADDED`: what coverage counts) enters an exponential average
-    with weight `rate`; the model's share then moves by `rate` toward
-    1 - `floor` if its average is the higher, else toward `floor`. The share
-    starts at 1/2.
-    """
-
-    floor: float = 0.1
-    rate: float = 0.2
-
-    def __post_init__(self) -> None:
-        for name, low, high in (("floor", 0.0, 0.5), ("rate", 0.0, 1.0)):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high):
-                raise ValueError(f"Fallback.{name}={value!r} is invalid: expected a float in [{low}, {high}]")
-
-    def init(self) -> FallbackState:
-        return FallbackState(share=jnp.float32(0.5), success=jnp.full(2, jnp.nan, jnp.float32))
-
-    def update(self, state: FallbackState, from_model: jax.Array, evaluated: Evaluated) -> FallbackState:
-        """The state after a generation whose rows [P] `from_model` came from the model's choice."""
-        success = evaluated.status == AddStatus.ADDED
-        rolled = evaluated.status != AddStatus.SKIPPED
-        sides = jnp.stack([from_model, ~from_model]) & rolled
-        count = sides.sum(axis=1)
-        rate = (sides & success).sum(axis=1) / jnp.maximum(count, 1)
-        averaged = running_average(state.success, rate, self.rate, count > 0)
-        target = jnp.where(averaged[0] > averaged[1], 1.0 - self.floor, self.floor)
-        share = jnp.where(jnp.isnan(averaged).any(), state.share, state.share + self.rate * (target - state.share))
-        return FallbackState(share=share.astype(jnp.float32), success=averaged.astype(jnp.float32))
 
 
 @struct.dataclass
@@ -121,6 +78,7 @@ class ModelEmitterState:
       fallback: `FallbackState`, or () without a fallback.
       anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
         plain and the anchored predictions (NaN before the first); else ().
+      steering: `pursuit.FallbackState` of a steering pursuit, or ().
     """
 
     model: model.ModelState
@@ -129,6 +87,7 @@ class ModelEmitterState:
     rollouts: Any = ()
     fallback: Any = ()
     anchor_errors: Any = ()
+    steering: Any = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,6 +109,8 @@ class ModelEmitter(Emitter):
       rollout_buffer: the size of that buffer.
       fallback: a `Fallback`, or None to always follow the acquisition rule.
         Only with a ranking rule (`Budgeted`, `Diverse`), whose best rows come first.
+      steering: a `steering.Steering`, or None for the inner emitter's pool alone. Only with a ranking rule
+        whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -160,7 +121,8 @@ class ModelEmitter(Emitter):
     to the nearest skill than one which did not; ties count 1/2; NaN without
     both kinds), with a
     fallback `model_share` (the share of the generation's rows from the rule: 1 during warm-up),
-    and the inner emitter's.
+    with steering `steered` (the generation's rollouts that were steered children) and, with its pursuit,
+    `steering_share` (the pursuit's share of the steerable rows this generation), and the inner emitter's.
     """
 
     inner: Emitter
@@ -175,6 +137,7 @@ class ModelEmitter(Emitter):
     training_data: str = "repertoire"
     rollout_buffer: int = 4096
     fallback: Fallback | None = None
+    steering: steering_lib.Steering | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.inner, Emitter):
@@ -193,6 +156,10 @@ class ModelEmitter(Emitter):
                                               and not isinstance(self.acquisition, acquisition.Threshold)):
             raise ValueError(f"ModelEmitter.fallback={self.fallback!r} is invalid: expected None, or a Fallback "
                              "with a ranking acquisition rule (not Threshold, whose rows are not ranked)")
+        if self.steering is not None and not (isinstance(self.steering, steering_lib.Steering)
+                                              and not isinstance(self.acquisition, acquisition.Threshold)):
+            raise ValueError(f"ModelEmitter.steering={self.steering!r} is invalid: expected None, or a Steering "
+                             "with a ranking acquisition rule (Threshold would roll out every steered child)")
         clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
@@ -203,7 +170,8 @@ class ModelEmitter(Emitter):
         return ModelEmitterState(model=model.init(key, self.hidden_size, task, self.ensemble_size),
                                  inner=self.inner.init(jax.random.fold_in(key, 1), task), evaluations=jnp.int32(0),
                                  rollouts=rollouts, fallback=() if self.fallback is None else self.fallback.init(),
-                                 anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else ())
+                                 anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else (),
+                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init())
 
     def members(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> jax.Array:
         """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n]. A subclass may
@@ -255,9 +223,12 @@ class ModelEmitter(Emitter):
                 num: int) -> Proposal:
         pool_size = self.acquisition.pool_size(num)
         pool = self.inner.propose(key, state.inner, repertoire, task, params, pool_size)
+        warm_up = state.evaluations < self.warmup_samples
+        if self.steering is not None:
+            pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
+                                          warm_up)
         plain, anchored = self.predictions(state, pool.actions, repertoire, task)
         judged = self._judged(state, plain, anchored, repertoire)
-        warm_up = state.evaluations < self.warmup_samples
         rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)
         from_model = jnp.ones(num, bool)
         if self.fallback is not None:
@@ -265,9 +236,30 @@ class ModelEmitter(Emitter):
         keep = lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x  # noqa: E731
         info = {"inner": jax.tree.map(keep, pool.info), "predicted_behaviors": judged.behaviors[rows],
                 "predicted_distance": judged.distance[rows], "from_model": from_model, "discarded": discarded}
+        if self.steering is not None:
+            info["steered"] = steered[rows] & rollout
         if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
             info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
         return Proposal(pool.actions[rows], rollout, info)
+
+    def _steered(self, key: jax.Array, state: ModelEmitterState, pool: Proposal, repertoire: Repertoire, task: Task,
+                 params: Params, num: int, warm_up: jax.Array) -> tuple[Proposal, jax.Array]:
+        """The pool [P] with its last rows replaced by steered children (not during warm-up or while the repertoire
+        is empty), and which rows [P] were."""
+        pool_size = pool.actions.shape[0]
+        count = self.steering.count(pool_size)
+        if count == 0 or pool_size - count < num:
+            raise ValueError(f"ModelEmitter.steering={self.steering!r} steers {count} of a pool of {pool_size}: "
+                             f"expected at least 1, leaving the inner emitter at least the {num} rollouts of a "
+                             "generation (a smaller share, or a larger pool)")
+        jacobian = jax.vmap(jax.jacfwd(lambda a: self.predict(state, a, task)[0]))
+        children = self.steering.steer(key, repertoire, jacobian, task, params, count)
+        on = ~warm_up & (repertoire.count > 0)
+        steered_rows = count if self._steering_pursuit is None else jnp.round(state.steering.share * count)
+        steered = on & (jnp.arange(pool_size) >= pool_size - steered_rows)
+        tail = steered[pool_size - count:, None]
+        actions = pool.actions.at[pool_size - count:].set(jnp.where(tail, children, pool.actions[pool_size - count:]))
+        return pool.replace(actions=actions), steered
 
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
                repertoire: Repertoire, task: Task, params: Params) -> tuple[ModelEmitterState, dict[str, jax.Array]]:
@@ -295,15 +287,29 @@ class ModelEmitter(Emitter):
             fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
                                     lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
                                                                  evaluated))
+        steering = state.steering
+        if self.steering is not None:
+            metrics["steered"] = proposal.info["steered"].sum(dtype=jnp.int32)
+        if self._steering_pursuit is not None:
+            metrics["steering_share"] = state.steering.share
+            steering = jax.lax.cond(state.evaluations < self.warmup_samples, lambda: state.steering,
+                                    lambda: self._steering_pursuit.update(state.steering, proposal.info["steered"],
+                                                                          evaluated))
         anchor_errors = state.anchor_errors
         if self.anchoring == "auto":
             errors = jax.vmap(_prediction_error, in_axes=(0, None))(proposal.info["both_behaviors"], evaluated)
             anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
         return ModelEmitterState(model=trained, inner=inner, evaluations=evaluations, rollouts=rollouts,
-                                 fallback=fallback, anchor_errors=anchor_errors), metrics
+                                 fallback=fallback, anchor_errors=anchor_errors, steering=steering), metrics
 
     def _own_metrics(self) -> dict[str, Any]:
-        return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32})}
+        return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32}),
+                **({} if self.steering is None else {"steered": jnp.int32}),
+                **({} if self._steering_pursuit is None else {"steering_share": jnp.float32})}
+
+    @property
+    def _steering_pursuit(self) -> Fallback | None:
+        return None if self.steering is None else self.steering.pursuit
 
     def metrics(self) -> dict[str, Any]:
         return {**self._own_metrics(), **self.inner.metrics()}
@@ -312,13 +318,6 @@ class ModelEmitter(Emitter):
         """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what skill adaptation uses; the
         ensemble's mean, not anchored)."""
         return model.predict(state.model, actions, task)
-
-
-def running_average(average: jax.Array, value: jax.Array, weight: float, seen: jax.Array) -> jax.Array:
-    """An exponential average after one more value: (1 - weight) * average + weight * value where `seen`;
-    the value itself where the average is still NaN (none yet); the average unchanged where not `seen`."""
-    updated = jnp.where(jnp.isnan(average), value, (1 - weight) * average + weight * value)
-    return jnp.where(seen, updated, average)
 
 
 def _share(rows: jax.Array, wanted: jax.Array, share: jax.Array, warm_up: jax.Array,

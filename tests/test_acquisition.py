@@ -14,7 +14,8 @@ from mqd_jax import Config, IsoLine, ModelEmitter, model, presets, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse
 from mqd_jax.emitters import Evaluated
-from mqd_jax.model_emitter import Fallback, FallbackState, _share, opener_auc
+from mqd_jax.model_emitter import _share, opener_auc
+from mqd_jax.pursuit import Fallback, FallbackState
 from mqd_jax.repertoire import AddStatus, Repertoire
 
 

@@ -1,0 +1,74 @@
+"""Adaptive pursuit (Thierens 2005) between two sources of rollouts: how far a model emitter trusts its model
+(`Fallback`), and how much of its pool it steers (`steering.Steering.pursuit`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from mqd_jax.emitters import Evaluated
+from mqd_jax.repertoire import AddStatus
+
+
+@struct.dataclass
+class FallbackState:
+    """Adaptive pursuit's state.
+
+    Attributes:
+      share: float32, the first side's share of the next generation (a fallback: the model's choice's share
+        of the rollouts; steering: the share of its rows steered).
+      success: [2] float32, exponential averages of the fraction of rollouts that
+        opened a niche: the first side's, the other's (NaN before the first).
+    """
+
+    share: jax.Array
+    success: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Fallback:
+    """How far a `ModelEmitter` trusts its model: adaptive pursuit (Thierens 2005) between the model's choice
+    and the inner emitter's own candidates (`ModelEmitter.fallback`), or between steered children and the rest
+    (`Steering.pursuit`).
+
+    After each generation past warm-up, each side's success (the fraction of
+    its rollouts that opened a niche, `AddStatus.ADDED`: what coverage counts) enters an exponential average
+    with weight `rate`; the model's share then moves by `rate` toward
+    1 - `floor` if its average is the higher, else toward `floor`. The share
+    starts at 1/2.
+    """
+
+    floor: float = 0.1
+    rate: float = 0.2
+
+    def __post_init__(self) -> None:
+        for name, low, high in (("floor", 0.0, 0.5), ("rate", 0.0, 1.0)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high):
+                raise ValueError(f"Fallback.{name}={value!r} is invalid: expected a float in [{low}, {high}]")
+
+    def init(self) -> FallbackState:
+        return FallbackState(share=jnp.float32(0.5), success=jnp.full(2, jnp.nan, jnp.float32))
+
+    def update(self, state: FallbackState, from_model: jax.Array, evaluated: Evaluated) -> FallbackState:
+        """The state after a generation whose rows [P] `from_model` came from the first side (the model's
+        choice; steered children)."""
+        success = evaluated.status == AddStatus.ADDED
+        rolled = evaluated.status != AddStatus.SKIPPED
+        sides = jnp.stack([from_model, ~from_model]) & rolled
+        count = sides.sum(axis=1)
+        rate = (sides & success).sum(axis=1) / jnp.maximum(count, 1)
+        averaged = running_average(state.success, rate, self.rate, count > 0)
+        target = jnp.where(averaged[0] > averaged[1], 1.0 - self.floor, self.floor)
+        share = jnp.where(jnp.isnan(averaged).any(), state.share, state.share + self.rate * (target - state.share))
+        return FallbackState(share=share.astype(jnp.float32), success=averaged.astype(jnp.float32))
+
+
+def running_average(average: jax.Array, value: jax.Array, weight: float, seen: jax.Array) -> jax.Array:
+    """An exponential average after one more value: (1 - weight) * average + weight * value where `seen`;
+    the value itself where the average is still NaN (none yet); the average unchanged where not `seen`."""
+    updated = jnp.where(jnp.isnan(average), value, (1 - weight) * average + weight * value)
+    return jnp.where(seen, updated, average)

@@ -1,0 +1,115 @@
+"""Steering: children aimed at empty behavior space by the model's Jacobian (one step of the paper's skill
+adaptation, without its rollout).
+
+A `ModelEmitter` with `steering=Steering()` replaces the last `share` of its
+inner emitter's pool with steered children before the acquisition rule ranks
+the pool. Each steered child comes from a target drawn uniformly in the
+behavior box and the skill whose behavior is nearest to it (so a skill is
+drawn in proportion to its Voronoi cell, which is largest at the repertoire's
+frontier: the bias of a rapidly-exploring random tree, LaValle 1998). The
+child is one step of the model's pseudo-inverse Jacobian from that skill,
+toward the target, for a behavior step of U(`step_low`, `step_high`) x
+t_dist (the whole way when the target is nearer):
+
+    a' = clip(a_j + pinv(J(a_j)) min(s, ||b* - b_j||) (b* - b_j) / ||b* - b_j||).
+
+With `parents="novelty"` the skill is drawn as IsoLine draws its parents (in
+proportion to novelty, also frontier-biased) and the step takes a direction
+uniform on the sphere.
+
+Where behavior is smooth in the action (the planar arm, 2D Obstacle away
+from walls) the child lands near its aim, at a new niche's distance from
+its parent; where contact makes it rugged (2D Object) the step is as blind
+as a mutation, and the acquisition rule and the fallback judge it like any
+other candidate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+
+from mqd_jax import repertoire as repertoire_lib
+from mqd_jax import selection
+from mqd_jax.emitters import action_bounds
+from mqd_jax.pursuit import Fallback
+from mqd_jax.repertoire import Repertoire
+from mqd_jax.task import Task
+
+if TYPE_CHECKING:
+    from mqd_jax.config import Params
+
+# actions [m, n] -> the model's behavior Jacobians [m, d, n] (real units) at them.
+Jacobian = Callable[[jax.Array], jax.Array]
+PARENTS = ("voronoi", "novelty")
+
+
+@dataclasses.dataclass(frozen=True)
+class Steering:
+    """How many of a pool's candidates are steered, and how far.
+
+    Attributes:
+      share: the fraction of the pool replaced by steered children (its last rows), in (0, 1).
+      step_low, step_high: the behavior step, uniform in [step_low, step_high] x t_dist (0 < low <= high).
+      parents: "voronoi" (the skill nearest to a target uniform in the behavior box, toward it) or "novelty"
+        (drawn as IsoLine draws parents, in proportion to novelty, toward a direction uniform on the sphere).
+      pursuit: None to steer `share` of the pool at every generation, or a `pursuit.Fallback` whose share
+        (from 1/2, within [floor, 1 - floor]) of those rows is steered: it pursues whichever of steered and
+        other rollouts has recently opened new niches more often.
+    """
+
+    share: float = 0.5
+    step_low: float = 1.0
+    step_high: float = 3.0
+    parents: str = "voronoi"
+    pursuit: Fallback | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("share", "step_low", "step_high"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0):
+                raise ValueError(f"Steering.{name}={value!r} is invalid: expected a float > 0")
+        if self.share >= 1:
+            raise ValueError(f"Steering.share={self.share!r} is invalid: expected a float in (0, 1) (the inner "
+                             "emitter keeps the rest of the pool)")
+        if self.parents not in PARENTS:
+            raise ValueError(f"Steering.parents={self.parents!r} is invalid: expected one of {PARENTS}")
+        if self.pursuit is not None and not isinstance(self.pursuit, Fallback):
+            raise ValueError(f"Steering.pursuit={self.pursuit!r} is invalid: expected None or a Fallback")
+        if self.step_low > self.step_high:
+            raise ValueError(f"Steering: step_low={self.step_low!r} > step_high={self.step_high!r}")
+
+    def count(self, pool_size: int) -> int:
+        """The most rows steered in a pool of `pool_size`."""
+        return round(self.share * pool_size)
+
+    def steer(self, key: jax.Array, repertoire: Repertoire, jacobian: Jacobian, task: Task, params: Params,
+              num: int) -> jax.Array:
+        """[num, n] steered children of a non-empty repertoire (see the module's doc)."""
+        k_target, k_step = jax.random.split(key)
+        parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)
+        actions = repertoire.actions[parents]
+        change = jnp.einsum("mnd,md->mn", jnp.linalg.pinv(jacobian(actions)), aim)
+        return jnp.clip(actions + change, *action_bounds(task))
+
+    def aims(self, k_target: jax.Array, k_step: jax.Array, repertoire: Repertoire, task: Task, params: Params,
+             num: int) -> tuple[jax.Array, jax.Array]:
+        """The steered children's parents (slots [num]) and the behavior changes [num, d] they are aimed at."""
+        if self.parents == "voronoi":
+            behavior_low = jnp.asarray(task.behavior_low, jnp.float32)
+            behavior_high = jnp.asarray(task.behavior_high, jnp.float32)
+            targets = jax.random.uniform(k_target, (num, task.behavior_dim), minval=behavior_low,
+                                         maxval=behavior_high)
+            parents = jnp.maximum(repertoire_lib.k_nearest(repertoire, targets, 1)[1][:, 0], 0)
+            offset = targets - repertoire.behaviors[parents]
+        else:  # a direction uniform on the sphere, from a target infinitely far
+            k_parents, k_direction = jax.random.split(k_target)
+            parents = selection.sample_parents(k_parents, repertoire.novelty, repertoire.valid, num)
+            offset = jax.random.normal(k_direction, (num, task.behavior_dim)) * 1e6
+        distance = jnp.linalg.norm(offset, axis=1, keepdims=True)
+        step = params.t_dist * jax.random.uniform(k_step, (num, 1), minval=self.step_low, maxval=self.step_high)
+        return parents, offset * jnp.minimum(1.0, step / jnp.maximum(distance, 1e-12))

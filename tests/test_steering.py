@@ -1,0 +1,162 @@
+"""Steering: children aimed by the model's Jacobian, checked on a task whose Jacobian is known, and in a
+ModelEmitter's pool."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mqd_jax import Config, Diverse, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Threshold, model, run_mqd
+from mqd_jax import repertoire as repertoire_lib
+from mqd_jax.repertoire import Repertoire
+
+T_DIST = 0.02
+# The conftest task's behavior: 0.5 + A a.
+A = 0.2 * np.array([[1.0, -1.0, 0.0], [0.5, 0.0, 1.0]], np.float32)
+
+
+@dataclasses.dataclass
+class Params:
+    t_dist: jax.Array = dataclasses.field(default_factory=lambda: jnp.float32(T_DIST))
+
+
+def wide(linear_task):
+    """The linear task with an action box so wide that no steered child is clipped."""
+    return type(linear_task)((-10.0,) * 3, (10.0,) * 3, linear_task.behavior_low, linear_task.behavior_high)
+
+
+def skills_at(task, actions):
+    """A repertoire holding skills of the given actions [n, 3] with their true outcomes."""
+    a = jnp.asarray(actions, jnp.float32)
+    b, q, valid = task.evaluate(a, None)
+    rep = Repertoire.empty(16, 3, 2, repertoire_lib.NUM_NEAR)
+    return repertoire_lib.insert(rep, a, b, q, valid, jnp.float32(T_DIST), 3, repertoire_lib.NUM_NEAR, chunk=4)[0]
+
+
+def linear_jacobian(actions):
+    return jnp.broadcast_to(jnp.asarray(A), (actions.shape[0], *A.shape))
+
+
+# Skills 0.04 and 0.03 apart (behaviors (0.5, 0.5), (0.54, 0.5), (0.5, 0.53)): closer than two steps.
+CLOSE = [[0.0, 0.0, 0.0], [0.2, 0.0, -0.1], [0.0, 0.0, 0.15]]
+
+
+def test_a_steered_child_is_a_min_norm_step_from_the_skill_nearest_to_it(linear_task):
+    task = wide(linear_task)
+    rep = skills_at(task, CLOSE)
+    children = Steering(step_low=1.0, step_high=3.0).steer(jax.random.PRNGKey(0), rep, linear_jacobian, task,
+                                                           Params(), 400)
+    b, _, _ = task.evaluate(children, None)
+    skills = np.asarray(rep.behaviors[:3])
+    d = np.linalg.norm(np.asarray(b)[:, None] - skills[None], axis=-1)
+    parent = d.argmin(1)
+    # The step toward a target stays in the parent's Voronoi cell (convex, holding both ends): the nearest skill
+    # to the child is its parent, at most 3 t_dist away, and at least t_dist unless the target was nearer (a
+    # target within t_dist of a skill: a chance of about 0.4%).
+    step = d.min(1)
+    assert (step <= 3 * T_DIST + 1e-5).all() and (step < T_DIST - 1e-5).mean() < 0.02
+    assert len(set(parent)) == 3
+    # The action changed by the least-norm change that makes the behavior change: pinv(A) (b' - b_j).
+    change = np.asarray(children) - np.asarray(CLOSE, np.float32)[parent]
+    expected = (np.linalg.pinv(A) @ (np.asarray(b) - skills[parent]).T).T
+    np.testing.assert_allclose(change, expected, atol=1e-5)
+
+
+def test_a_step_longer_than_the_way_ends_on_the_target(linear_task):
+    # Targets are uniform in the behavior box: the children of steps that reach them are, too.
+    task = wide(linear_task)
+    rep = skills_at(task, CLOSE)
+    children = Steering(step_low=100.0, step_high=100.0).steer(jax.random.PRNGKey(1), rep, linear_jacobian, task,
+                                                               Params(), 2000)
+    b = np.asarray(task.evaluate(children, None)[0])
+    assert (b > -1e-5).all() and (b < 1 + 1e-5).all()
+    np.testing.assert_allclose(b.mean(0), [0.5, 0.5], atol=0.03)
+    np.testing.assert_allclose(b.std(0), [12 ** -0.5] * 2, atol=0.02)
+
+
+def test_novelty_parents_step_in_every_direction(linear_task):
+    task = wide(linear_task)
+    rep = skills_at(task, CLOSE[:1])
+    children = Steering(parents="novelty").steer(jax.random.PRNGKey(3), rep, linear_jacobian, task, Params(), 400)
+    offset = np.asarray(task.evaluate(children, None)[0]) - np.asarray(rep.behaviors[0])
+    step = np.linalg.norm(offset, axis=1)
+    assert (step >= T_DIST - 1e-5).all() and (step <= 3 * T_DIST + 1e-5).all()
+    assert np.linalg.norm((offset / step[:, None]).mean(0)) < 0.1  # no preferred direction
+    assert (offset > 0).any(0).all() and (offset < 0).any(0).all()
+
+
+def test_steered_children_stay_in_the_action_box(linear_task):
+    rep = skills_at(linear_task, [[0.99, -0.99, 0.99]])
+    children = Steering(step_low=50.0, step_high=50.0).steer(jax.random.PRNGKey(2), rep, linear_jacobian,
+                                                             linear_task, Params(), 64)
+    assert (np.abs(np.asarray(children)) <= 1.0).all()
+    assert (np.abs(np.asarray(children)) == 1.0).any()  # some were clipped
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [({"share": 1.0}, "share"), ({"share": 0.0}, "share"),
+                                               ({"step_low": 2.0, "step_high": 1.0}, "step_low"),
+                                               ({"step_high": True}, "step_high"),
+                                               ({"parents": "uniform"}, "parents"),
+                                               ({"pursuit": 0.5}, "pursuit")])
+def test_bad_steering_is_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        Steering(**kwargs)
+
+
+def test_steering_needs_a_ranking_rule_and_is_not_imagined():
+    with pytest.raises(ValueError, match="ranking acquisition rule"):
+        ModelEmitter(IsoLine(), Threshold(), steering=Steering())
+    with pytest.raises(ValueError, match=r"Imagination\.steering"):
+        Imagination(IsoLine(), Diverse(), steering=Steering())
+
+
+def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
+    """The last rows of the pool are steered children whose predicted behavior moved by the step the model's
+    Jacobian was asked for (a small step, where the network is nearly linear); the first rows are the inner
+    emitter's; during warm-up the pool is the inner emitter's."""
+    emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), hidden_size=8, warmup_samples=10,
+                           steering=Steering(share=0.5, step_low=0.05, step_high=0.05))
+    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    state = state.replace(model=model.init(jax.random.PRNGKey(3), 8, linear_task))
+    rep = skills_at(linear_task, [[0.1, -0.2, 0.3]])
+    params, key = Config().params(), jax.random.PRNGKey(4)
+    pool = emitter.inner.propose(key, state.inner, rep, linear_task, params, 40)
+    for warm_up, steered_rows in ((True, 0), (False, 20)):
+        got, steered = emitter._steered(jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
+                                        jnp.bool_(warm_up))
+        np.testing.assert_array_equal(np.asarray(steered), np.arange(40) >= 40 - steered_rows)
+        np.testing.assert_array_equal(got.actions[:40 - steered_rows], pool.actions[:40 - steered_rows])
+    children = got.actions[20:]
+    moved = emitter.predict(state, children, linear_task)[0] - emitter.predict(state, rep.actions[:1], linear_task)[0]
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.05)
+    with pytest.raises(ValueError, match="leaving the inner emitter"):
+        emitter._steered(key, state, pool, rep, linear_task, params, 25, jnp.bool_(False))
+
+
+def test_a_steered_run_reports_its_steered_rollouts(tiny):
+    steered = ModelEmitter(IsoLine(), Diverse(), hidden_size=8, num_batches=2, warmup_samples=16,
+                           steering=Steering())
+    cfg = tiny(algorithm=steered, max_generations=4)
+    _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
+    count = np.asarray(metrics["steered"])
+    assert count[0] == 0  # warm-up
+    assert (count[1:] > 0).all() and (count <= cfg.population_size).all()
+
+
+def test_a_steering_pursuit_moves_its_share_by_the_pursuit_rule(tiny):
+    pursuit = Fallback(floor=0.1, rate=0.2)
+    steered = ModelEmitter(IsoLine(), Diverse(), hidden_size=8, num_batches=2, warmup_samples=16,
+                           steering=Steering(share=0.5, pursuit=pursuit))
+    cfg = tiny(algorithm=steered, max_generations=6)
+    _, metrics = run_mqd(jax.random.PRNGKey(1), cfg)
+    share, count = np.asarray(metrics["steering_share"]), np.asarray(metrics["steered"])
+    pool = Diverse().pool_size(cfg.population_size)
+    assert share[0] == share[1] == 0.5  # nothing compared during warm-up, nor before a generation with both sides
+    assert (count <= np.round(share * round(0.5 * pool))).all() and count[1] > 0
+    # Each later generation moves the share a fifth of the way toward 0.9 or 0.1 (or keeps it: no comparison yet).
+    target = (share[2:] - 0.8 * share[1:-1]) / 0.2
+    moved = ~np.isclose(share[2:], share[1:-1])
+    assert np.isclose(target[moved][:, None], [0.1, 0.9], atol=1e-4).any(1).all()
+    assert moved.any()
