@@ -103,29 +103,16 @@ def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], 
 
 
 @dataclasses.dataclass(frozen=True)
-class BlindSteering(Steering):
-    """Steering's parents without its Jacobian (the ablation of "mqd-steered-quarter"): each drawn parent's
-    child is an iso mutation of it (`params.iso_sigma`), as IsoLine's without the line term."""
-
-    def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int) -> jax.Array:
-        k_target, k_step, k_iso = jax.random.split(key, 3)
-        parents, _ = self.aims(k_target, k_step, repertoire, task, params, num)
-        low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
-        mutation = params.iso_sigma * (high - low) * jax.random.normal(k_iso, (num, low.shape[0]))
-        return jnp.clip(repertoire.actions[parents] + mutation, low, high)
-
-
-@dataclasses.dataclass(frozen=True)
 class VoronoiIsoLine(IsoLine):
-    """QD whose last `share` of children are `BlindSteering`'s (Voronoi parents, iso mutation): the model-free
-    reference for the steering compositions."""
+    """QD whose last `share` of children are `Steering(step="mutation")`'s (Voronoi parents, iso mutation): the
+    model-free reference for the steering compositions."""
 
     share: float = 0.25
 
     def propose(self, key: jax.Array, state: Any, repertoire: Any, task: Task, params: Any, num: int) -> Any:
         proposal = super().propose(key, state, repertoire, task, params, num)
         count = round(self.share * num)
-        children = BlindSteering().steer(jax.random.fold_in(key, 2), repertoire, None, task, params, count)
+        children = Steering(step="mutation").steer(jax.random.fold_in(key, 2), repertoire, None, task, params, count)
         tail = jnp.where(repertoire.count > 0, children, proposal.actions[num - count:])
         return proposal.replace(actions=proposal.actions.at[num - count:].set(tail))
 
@@ -155,8 +142,8 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
     "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
-    "mqd-voronoi-mutation-quarter": _replaced(steering=BlindSteering(share=0.25)),
-    "mqd-voronoi-mutation-half": _replaced(steering=BlindSteering(share=0.5)),
+    "mqd-voronoi-mutation-quarter": _replaced(steering=Steering(share=0.25, step="mutation")),
+    "mqd-voronoi-mutation-half": _replaced(steering=Steering(share=0.5, step="mutation")),
     "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
     "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),
     "mqd-steered-pursuit-80": _replaced(steering=Steering(share=0.8, pursuit=Fallback())),

@@ -15,7 +15,8 @@ t_dist (the whole way when the target is nearer):
 
 With `parents="novelty"` the skill is drawn as IsoLine draws its parents (in
 proportion to novelty, also frontier-biased) and the step takes a direction
-uniform on the sphere.
+uniform on the sphere. `step="mutation"` replaces the model's step by an iso
+mutation of the drawn skill: the same parents without the model (an ablation).
 
 Where behavior is smooth in the action (the planar arm, 2D Obstacle away
 from walls) the child lands near its aim, at a new niche's distance from
@@ -46,6 +47,7 @@ if TYPE_CHECKING:
 # actions [m, n] -> the model's behavior Jacobians [m, d, n] (real units) at them.
 Jacobian = Callable[[jax.Array], jax.Array]
 PARENTS = ("voronoi", "novelty")
+STEPS = ("jacobian", "mutation")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +59,8 @@ class Steering:
       step_low, step_high: the behavior step, uniform in [step_low, step_high] x t_dist (0 < low <= high).
       parents: "voronoi" (the skill nearest to a target uniform in the behavior box, toward it) or "novelty"
         (drawn as IsoLine draws parents, in proportion to novelty, toward a direction uniform on the sphere).
+      step: "jacobian" (the model's step toward the aim) or "mutation" (the ablation without the model: the
+        parent's iso mutation, `params.iso_sigma` x the action range, as IsoLine's without its line term).
       pursuit: None to steer `share` of the pool at every generation, or a `pursuit.Fallback` whose share
         (from 1/2, within [floor, 1 - floor]) of those rows is steered: it pursues whichever of steered and
         other rollouts has recently opened new niches more often.
@@ -67,6 +71,7 @@ class Steering:
     step_high: float = 3.0
     parents: str = "voronoi"
     pursuit: Fallback | None = None
+    step: str = "jacobian"
 
     def __post_init__(self) -> None:
         for name in ("share", "step_low", "step_high"):
@@ -78,6 +83,8 @@ class Steering:
                              "emitter keeps the rest of the pool)")
         if self.parents not in PARENTS:
             raise ValueError(f"Steering.parents={self.parents!r} is invalid: expected one of {PARENTS}")
+        if self.step not in STEPS:
+            raise ValueError(f"Steering.step={self.step!r} is invalid: expected one of {STEPS}")
         if self.pursuit is not None and not isinstance(self.pursuit, Fallback):
             raise ValueError(f"Steering.pursuit={self.pursuit!r} is invalid: expected None or a Fallback")
         if self.step_low > self.step_high:
@@ -90,11 +97,17 @@ class Steering:
     def steer(self, key: jax.Array, repertoire: Repertoire, jacobian: Jacobian, task: Task, params: Params,
               num: int) -> jax.Array:
         """[num, n] steered children of a non-empty repertoire (see the module's doc)."""
+        low, high = action_bounds(task)
+        if self.step == "mutation":
+            k_target, k_step, k_iso = jax.random.split(key, 3)
+            parents, _ = self.aims(k_target, k_step, repertoire, task, params, num)
+            change = params.iso_sigma * (high - low) * jax.random.normal(k_iso, (num, low.shape[0]))
+            return jnp.clip(repertoire.actions[parents] + change, low, high)
         k_target, k_step = jax.random.split(key)
         parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)
         actions = repertoire.actions[parents]
         change = jnp.einsum("mnd,md->mn", jnp.linalg.pinv(jacobian(actions)), aim)
-        return jnp.clip(actions + change, *action_bounds(task))
+        return jnp.clip(actions + change, low, high)
 
     def aims(self, k_target: jax.Array, k_step: jax.Array, repertoire: Repertoire, task: Task, params: Params,
              num: int) -> tuple[jax.Array, jax.Array]:

@@ -87,6 +87,20 @@ def test_novelty_parents_step_in_every_direction(linear_task):
     assert (offset > 0).any(0).all() and (offset < 0).any(0).all()
 
 
+def test_a_mutation_step_is_an_iso_mutation_of_the_drawn_skill_without_the_model(linear_task):
+    task = wide(linear_task)
+    rep = skills_at(task, CLOSE[:1])
+
+    def no_model(actions):
+        raise AssertionError("a mutation step asks the model for no Jacobian")
+
+    params = Config().params()
+    children = Steering(step="mutation").steer(jax.random.PRNGKey(4), rep, no_model, task, params, 4000)
+    change = np.asarray(children) - np.asarray(CLOSE[0], np.float32)
+    np.testing.assert_allclose(change.mean(0), 0.0, atol=0.02)
+    np.testing.assert_allclose(change.std(0), float(params.iso_sigma) * 20.0, rtol=0.05)
+
+
 def test_steered_children_stay_in_the_action_box(linear_task):
     rep = skills_at(linear_task, [[0.99, -0.99, 0.99]])
     children = Steering(step_low=50.0, step_high=50.0).steer(jax.random.PRNGKey(2), rep, linear_jacobian,
@@ -99,7 +113,7 @@ def test_steered_children_stay_in_the_action_box(linear_task):
                                                ({"step_low": 2.0, "step_high": 1.0}, "step_low"),
                                                ({"step_high": True}, "step_high"),
                                                ({"parents": "uniform"}, "parents"),
-                                               ({"pursuit": 0.5}, "pursuit")])
+                                               ({"pursuit": 0.5}, "pursuit"), ({"step": "line"}, "step")])
 def test_bad_steering_is_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         Steering(**kwargs)
