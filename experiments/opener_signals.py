@@ -25,8 +25,6 @@ sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 
 from __future__ import annotations
 
-import argparse
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -110,13 +108,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
-    parser.add_argument("--generations", type=int, default=100)
-    parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--pools", type=int, default=4)
-    parser.add_argument("--out", default="docs/data/opener_signals.md")
-    args = parser.parse_args()
+    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals.md", pools=4)
     if "arm" in args.tasks and not registry.is_task("arm"):
         registry.register("arm", make_arm)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "

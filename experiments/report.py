@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
 from collections.abc import Callable
@@ -13,7 +14,7 @@ from mqd_jax.plots import pyplot
 from mqd_jax.provenance import machine
 from mqd_jax.results import write_markdown as write
 
-__all__ = ["coverage_at", "machine", "median_ms", "pyplot", "write"]
+__all__ = ["coverage_at", "machine", "median_ms", "probe_arguments", "pyplot", "write"]
 
 
 def coverage_at(num_evaluations: np.ndarray, coverage: np.ndarray, evaluations: float) -> np.ndarray:
@@ -31,3 +32,16 @@ def median_ms(fn: Callable[[], object], repeats: int) -> float:
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - start)
     return statistics.median(times) * 1e3
+
+
+def probe_arguments(doc: str, tasks: list[str], seeds: int, out: str, **ints: int) -> argparse.Namespace:
+    """The command line of a probe of "mqd" runs: --tasks, --generations (default 100), --seeds, one int option
+    per `ints` (name: default) and --out; the description is the first line of `doc`."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=tasks)
+    parser.add_argument("--generations", type=int, default=100)
+    parser.add_argument("--seeds", type=int, default=seeds)
+    for name, default in ints.items():
+        parser.add_argument(f"--{name}", type=int, default=default)
+    parser.add_argument("--out", default=out)
+    return parser.parse_args()

@@ -14,8 +14,6 @@ the distance between b' and the aim b + s t_dist u. A step the model predicts we
 
 from __future__ import annotations
 
-import argparse
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -57,12 +55,7 @@ def accuracy(task_name: str, generations: int, seed: int) -> dict[float, tuple[f
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d", "arm"])
-    parser.add_argument("--generations", type=int, default=100)
-    parser.add_argument("--seeds", type=int, default=1)
-    parser.add_argument("--out", default="docs/data/steering_accuracy.md")
-    args = parser.parse_args()
+    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d", "arm"], 1, "docs/data/steering_accuracy.md")
     if "arm" in args.tasks and not registry.is_task("arm"):
         registry.register("arm", make_arm)
     lines = [f"Command: `python experiments/steering_accuracy.py --tasks {' '.join(args.tasks)} --generations "
