@@ -20,8 +20,7 @@ import numpy as np
 import report
 from sample_efficiency import make_arm
 
-from mqd_jax import Config, presets, registry, run_mqd, selection
-from mqd_jax.emitters import action_bounds
+from mqd_jax import Config, presets, registry, run_mqd, selection, steering
 from mqd_jax.run import get_task
 
 CHILDREN = 800
@@ -42,7 +41,7 @@ def accuracy(task_name: str, generations: int, seed: int) -> dict[float, tuple[f
     out = {}
     for s in STEPS:
         aim = s * params.t_dist * direction
-        child = jnp.clip(actions + jnp.einsum("mnd,md->mn", jnp.linalg.pinv(jacobians), aim), *action_bounds(task))
+        child = steering.jacobian_step(actions, jacobians, aim, task)
         reached, _, valid = task.evaluate(child, k_rollout)
         valid = np.asarray(valid)
         change = np.asarray(reached - behaviors)[valid]

@@ -280,10 +280,9 @@ class ModelEmitter(Emitter):
         metrics = {"discarded": proposal.info["discarded"], "model_loss": loss,
                    "prediction_error": _prediction_error(proposal.info["predicted_behaviors"], evaluated),
                    "opener_auc": opener_auc(proposal.info["predicted_distance"], evaluated), **inner_metrics}
-        fallback = state.fallback
+        fallback, was_warm_up = state.fallback, state.evaluations < self.warmup_samples
         if self.fallback is not None:
             metrics["model_share"] = proposal.info["from_model"].mean(dtype=jnp.float32)
-            was_warm_up = state.evaluations < self.warmup_samples
             fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
                                     lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
                                                                  evaluated))
@@ -292,7 +291,7 @@ class ModelEmitter(Emitter):
             metrics["steered"] = proposal.info["steered"].sum(dtype=jnp.int32)
         if self._steering_pursuit is not None:
             metrics["steering_share"] = state.steering.share
-            steering = jax.lax.cond(state.evaluations < self.warmup_samples, lambda: state.steering,
+            steering = jax.lax.cond(was_warm_up, lambda: state.steering,
                                     lambda: self._steering_pursuit.update(state.steering, proposal.info["steered"],
                                                                           evaluated))
         anchor_errors = state.anchor_errors

@@ -106,8 +106,7 @@ class Steering:
         k_target, k_step = jax.random.split(key)
         parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)
         actions = repertoire.actions[parents]
-        change = jnp.einsum("mnd,md->mn", jnp.linalg.pinv(jacobian(actions)), aim)
-        return jnp.clip(actions + change, low, high)
+        return jacobian_step(actions, jacobian(actions), aim, task)
 
     def aims(self, k_target: jax.Array, k_step: jax.Array, repertoire: Repertoire, task: Task, params: Params,
              num: int) -> tuple[jax.Array, jax.Array]:
@@ -126,3 +125,9 @@ class Steering:
         distance = jnp.linalg.norm(offset, axis=1, keepdims=True)
         step = params.t_dist * jax.random.uniform(k_step, (num, 1), minval=self.step_low, maxval=self.step_high)
         return parents, offset * jnp.minimum(1.0, step / jnp.maximum(distance, 1e-12))
+
+
+def jacobian_step(actions: jax.Array, jacobians: jax.Array, aim: jax.Array, task: Task) -> jax.Array:
+    """Actions [m, n] moved by pinv(J) aim (Jacobians [m, d, n], aimed behavior changes [m, d]), clipped to the
+    task's action box: the least-norm change that makes the linearized behavior move by the aim."""
+    return jnp.clip(actions + jnp.einsum("mnd,md->mn", jnp.linalg.pinv(jacobians), aim), *action_bounds(task))
