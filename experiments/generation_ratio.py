@@ -2,7 +2,8 @@
 
     python experiments/generation_ratio.py [--task obstacle2d] [--configs mqd mqd:ensemble_size=1 ...]
 
-Each config ("PRESET" or "PRESET:FIELD=VALUE,FIELD=VALUE", fields of `Config`)
+Each config ("NAME" or "NAME:FIELD=VALUE,FIELD=VALUE", fields of `Config`; NAME a
+preset or a composition of `sample_efficiency.py`)
 grows a repertoire for `--grow` generations (paper 2D settings), then its
 generation is timed from that state: `--rounds` rounds, each taking the median
 of `--calls` calls of every config in turn, so that a slow spell of the
@@ -17,22 +18,26 @@ import dataclasses
 
 import jax
 import report
+from sample_efficiency import COMPOSITIONS
 
 from mqd_jax import Config, init
 from mqd_jax.run import generation, run_generations
 
 
 def parse(spec: str, task: str) -> Config:
-    """A config from "PRESET" or "PRESET:FIELD=VALUE,...", the values' types those of `Config`'s defaults."""
-    preset, _, changes = spec.partition(":")
-    cfg = Config.paper_2d(task=task, algorithm=preset)
+    """A config from "NAME" or "NAME:FIELD=VALUE,...", the values' types those of `Config`'s defaults."""
+    name, _, changes = spec.partition(":")
+    if name not in COMPOSITIONS:
+        raise SystemExit(f"{spec!r}: {name!r} is not a preset or a composition of sample_efficiency.py")
+    cfg = Config.paper_2d(task=task)
     fields = {f.name for f in dataclasses.fields(Config)}
     for change in filter(None, changes.split(",")):
-        name, _, value = change.partition("=")
-        if name not in fields:
-            raise SystemExit(f"{spec!r}: {name!r} is not a Config field")
-        cfg = dataclasses.replace(cfg, **{name: type(getattr(cfg, name))(value)})
-    return cfg
+        field, _, value = change.partition("=")
+        if field not in fields:
+            raise SystemExit(f"{spec!r}: {field!r} is not a Config field")
+        cfg = dataclasses.replace(cfg, **{field: type(getattr(cfg, field))(value)})
+    composed = COMPOSITIONS[name](cfg)
+    return composed if isinstance(composed, Config) else dataclasses.replace(cfg, algorithm=composed)
 
 
 def main() -> None:

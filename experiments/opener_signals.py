@@ -29,9 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
-from sample_efficiency import make_arm
+from sample_efficiency import register_experiment_tasks
 
-from mqd_jax import Config, model, presets, registry, run_mqd, selection
+from mqd_jax import Config, model, presets, run_mqd, selection
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.archive import Archive
 from mqd_jax.run import get_task
@@ -109,8 +109,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
 
 def main() -> None:
     args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals.md", pools=4)
-    if "arm" in args.tasks and not registry.is_task("arm"):
-        registry.register("arm", make_arm)
+    register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds} --pools {args.pools}`", "",
              f"Machine: {report.machine()}.", "",

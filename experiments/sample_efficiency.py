@@ -83,6 +83,36 @@ def make_arm(joints: int = 10) -> PlanarArm:
     return PlanarArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class RastriginProjection(Task):
+    """QD's Rastrigin projection (a classic benchmark, after QDax's rastrigin_proj): x in [-5.12, 5.12]^n,
+    behavior = the means of x's two halves mapped to [0, 1]^2, quality = -Rastrigin(x) / Rastrigin's largest
+    value. A uniform action's means lie near the centre; the edges need a half of x moved together."""
+
+    quality_range = (-1.0, 0.0)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        n, bound = actions.shape[1], 5.12
+        halves = jnp.stack([actions[:, : n // 2].mean(1), actions[:, n // 2:].mean(1)], axis=1)
+        rastrigin = 10.0 * n + (actions**2 - 10.0 * jnp.cos(2 * jnp.pi * actions)).sum(1)
+        return (halves / bound + 1.0) / 2.0, -rastrigin / (n * (bound**2 + 20.0)), jnp.ones(actions.shape[0], bool)
+
+
+def make_rastrigin(dims: int = 20) -> RastriginProjection:
+    return RastriginProjection((-5.12,) * dims, (5.12,) * dims, (0.0, 0.0), (1.0, 1.0))
+
+
+# Tasks defined here, registered by the experiments that name them.
+EXPERIMENT_TASKS = {"arm": make_arm, "rastrigin": make_rastrigin}
+
+
+def register_experiment_tasks(tasks: list[str]) -> None:
+    """Registers the tasks of `EXPERIMENT_TASKS` among `tasks` that are not registered yet."""
+    for name in tasks:
+        if name in EXPERIMENT_TASKS and not registry.is_task(name):
+            registry.register(name, EXPERIMENT_TASKS[name])
+
+
 def _rebuilt(cls: type, **changes: Any) -> Callable[[Config], Any]:
     """The "mqd" preset's emitter of a config rebuilt as `cls` (ModelEmitter or a subclass), some fields changed."""
     def build(cfg: Config) -> Any:
@@ -117,6 +147,35 @@ class VoronoiIsoLine(IsoLine):
         return proposal.replace(actions=proposal.actions.at[num - count:].set(tail))
 
 
+@dataclasses.dataclass(frozen=True)
+class MixedSteering(Steering):
+    """Steering whose first half of children take the model's Jacobian step and the rest an iso mutation."""
+
+    def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int) -> jax.Array:
+        half = num // 2
+        k_jacobian, k_mutation = jax.random.split(key)
+        aimed = dataclasses.replace(self, step="jacobian")
+        mutated = dataclasses.replace(self, step="mutation")
+        return jnp.concatenate([Steering.steer(aimed, k_jacobian, repertoire, jacobian, task, params, half),
+                                Steering.steer(mutated, k_mutation, repertoire, jacobian, task, params, num - half)])
+
+
+@dataclasses.dataclass(frozen=True)
+class MultiScaleIsoLine(IsoLine):
+    """IsoLine whose children come in equal parts at several mutation scales (x params.iso_sigma and line_sigma),
+    the first part at `scales[0]`."""
+
+    scales: tuple[float, ...] = (1.0, 0.25)
+
+    def propose(self, key: jax.Array, state: Any, repertoire: Any, task: Task, params: Any, num: int) -> Any:
+        sizes = [num // len(self.scales) + (i < num % len(self.scales)) for i in range(len(self.scales))]
+        parts = [super(MultiScaleIsoLine, self).propose(
+            jax.random.fold_in(key, i), state, repertoire, task,
+            params.replace(iso_sigma=params.iso_sigma * scale, line_sigma=params.line_sigma * scale), size)
+            for i, (scale, size) in enumerate(zip(self.scales, sizes, strict=True))]
+        return jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
+
+
 # Cheaper training schedules: half the Adam steps; a quarter of the steps on 4x wider batches.
 _HALF_TRAINING = _replaced(num_batches=250)
 _WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
@@ -138,11 +197,16 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),
-    "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
+    "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),  # "mqd" since version 0.5
+    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0),  # "mqd" of version 0.4
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
     "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
     "mqd-voronoi-mutation-quarter": _replaced(steering=Steering(share=0.25, step="mutation")),
+    "mqd-steered-mixed-quarter": _replaced(steering=MixedSteering(share=0.25)),
+    "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
+    "mqd-two-scales": _replaced(inner=MultiScaleIsoLine()),
+    "mqd-two-scales-half": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 0.5))),
     "mqd-voronoi-mutation-half": _replaced(steering=Steering(share=0.5, step="mutation")),
     "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
     "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),
@@ -238,6 +302,12 @@ def figure_path(out: str) -> str:
     return os.path.join(folder, name + ".png")
 
 
+def _preset_name(algorithm: str, cfg: Config) -> str:
+    """A sweep's preset as a composition's name: an "mqd" run without steering (version 0.4's) is
+    "mqd-unsteered"."""
+    return "mqd-unsteered" if algorithm == "mqd" and cfg.steering_share == 0 else algorithm
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
@@ -253,8 +323,7 @@ def main() -> None:
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
     args = parser.parse_args()
-    if "arm" in args.tasks and not registry.is_task("arm"):
-        registry.register("arm", make_arm)
+    register_experiment_tasks(args.tasks)
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
     if args.sweep:
@@ -263,8 +332,8 @@ def main() -> None:
         for (_, _, suffix), runs in zip(folders, loaded, strict=True):
             for task, by in runs.items():
                 curves.setdefault(task, {}).update(
-                    {alg + (f"-{suffix}" if suffix else ""): _curves(r.metrics, r.cfg.warmup_samples)
-                     for alg, r in by.items()})
+                    {_preset_name(alg, r.cfg) + (f"-{suffix}" if suffix else ""):
+                     _curves(r.metrics, r.cfg.warmup_samples) for alg, r in by.items()})
         seeds = {len(r.keys) for runs in loaded for by in runs.values() for r in by.values()}
         command = f"python experiments/sample_efficiency.py --sweep {' '.join(args.sweep)}"
         if args.run:  # beside the sweeps' runs, on their tasks and seeds (`mqd sweep` runs sweep.seed_keys too)

@@ -18,9 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
-from sample_efficiency import make_arm
+from sample_efficiency import register_experiment_tasks
 
-from mqd_jax import Config, presets, registry, run_mqd, selection, steering
+from mqd_jax import Config, presets, run_mqd, selection, steering
 from mqd_jax.run import get_task
 
 CHILDREN = 800
@@ -55,8 +55,7 @@ def accuracy(task_name: str, generations: int, seed: int) -> dict[float, tuple[f
 
 def main() -> None:
     args = report.probe_arguments(__doc__, ["obstacle2d", "object2d", "arm"], 1, "docs/data/steering_accuracy.md")
-    if "arm" in args.tasks and not registry.is_task("arm"):
-        registry.register("arm", make_arm)
+    register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/steering_accuracy.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds}`", "", f"Machine: {report.machine()}.", "",
              f"After {args.generations} generations of \"mqd\": {CHILDREN} novelty-drawn skills per seed, each "

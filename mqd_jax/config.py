@@ -104,8 +104,8 @@ class Config:
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
     model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism; "mqd-paper": t_nov, t_qua,
-    budgeted) configure the model presets; a composed emitter carries its own
+    pool_factor; "mqd": ensemble_size, optimism, steering_share; "mqd-paper":
+    t_nov, t_qua, budgeted) configure the model presets; a composed emitter carries its own
     settings.
     """
 
@@ -145,6 +145,9 @@ class Config:
     # optimistic distance to the nearest skill (acquisition.greedy_diverse).
     ensemble_size: int = 1
     optimism: float = 1.0
+    # "mqd": the share of the pool replaced by children the model's Jacobian
+    # aims at empty behavior space (steering.Steering; 0 = none, version 0.4's "mqd").
+    steering_share: float = 0.25
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate
     # exactly `population_size` of them (see acquisition.Budgeted).
@@ -179,6 +182,13 @@ class Config:
         _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
         _check(not self.budgeted or self.algorithm == "mqd-paper", "budgeted", self.budgeted,
                f"False unless algorithm='mqd-paper' (it is {self.algorithm!r})")
+        _check(_is_real(self.steering_share) and 0 <= self.steering_share < 1, "steering_share", self.steering_share,
+               "a float in [0, 1)")
+        pool = self.pool_factor * self.population_size
+        steered = round(self.steering_share * pool)
+        _check(self.algorithm != "mqd" or self.steering_share == 0 or 1 <= steered <= pool - self.population_size,
+               "steering_share", self.steering_share, f"0, or a share of 'mqd''s pool of {pool} (pool_factor x "
+               "population_size) that steers at least one child and leaves population_size unsteered")
         budget = self.max_generations * self.population_size
         _check(self.algorithm not in MODEL_PRESETS or self.warmup_samples < budget, "warmup_samples",
                self.warmup_samples,
@@ -264,7 +274,7 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     """A config dict saved by an earlier version in today's fields: `physics_backend` "auto" is dropped (since
     version 0.2 a robot task's backend is an option of its construction, `task_options`); before version 0.3
     (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
-    defaulted to 4."""
+    defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer."""
     saved = dict(saved)
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
@@ -272,6 +282,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
             saved["algorithm"] = "mqd-paper"
         for name in ("ensemble_size", "optimism"):  # fields that did not exist: today's defaults
             saved[name] = Config.__dataclass_fields__[name].default
+    if "steering_share" not in saved:  # before version 0.5 "mqd" did not steer
+        saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.steering_share
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}

@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from mqd_jax import Config, IsoLine, ModelEmitter, model, presets, run_mqd
+from mqd_jax import Config, IsoLine, ModelEmitter, Steering, model, presets, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse
 from mqd_jax.emitters import Evaluated
@@ -259,10 +259,13 @@ def test_opener_auc_by_brute_force():
 
 
 def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(tiny):
-    cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5)
+    cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5,
+               steering_share=0.3)
     assert presets.emitter(cfg) == ModelEmitter(
         IsoLine(), Diverse(3, 0.5), k=cfg.k, hidden_size=cfg.hidden_size, ensemble_size=2,
-        batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", fallback=Fallback())
+        batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", fallback=Fallback(),
+        steering=Steering(share=0.3))
+    assert presets.emitter(dataclasses.replace(cfg, steering_share=0.0)).steering is None  # version 0.4's "mqd"
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
     np.testing.assert_array_equal(m["evaluations"], pop)
@@ -272,6 +275,9 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     np.testing.assert_array_equal(share[warm], 1.0)  # warm-up: the inner emitter's candidates, all "the rule's"
     assert np.all((share[~warm] >= 0.1 - 1e-6) & (share[~warm] <= 0.9 + 1e-6))
     assert state.emitter.model.params["params"]["Dense_0"]["bias"].shape[0] == 2
+    steered = np.asarray(m["steered"])
+    np.testing.assert_array_equal(steered[warm], 0)  # none in warm-up; after it, rollouts of the 14 steered rows
+    assert np.all(steered[~warm] <= np.asarray(m["evaluations"])[~warm]) and steered[~warm].sum() > 0
 
 
 def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_only_them(linear_task):
@@ -297,6 +303,14 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
     assert int(state.model.steps) == 6
     with pytest.raises(ValueError, match=r"ModelEmitter\.training_data="):
         ModelEmitter(IsoLine(), training_data="archive")
+
+
+def test_mqd_configs_saved_before_version_0_5_do_not_steer():
+    for algorithm, share in (("mqd", 0.0), ("qd", Config().steering_share), ("mqd-paper", Config().steering_share)):
+        saved = Config(algorithm=algorithm).to_dict()
+        del saved["steering_share"]
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share)
+    assert Config().steering_share == 0.25 and presets.emitter(Config(algorithm="mqd")).steering == Steering(0.25)
 
 
 def test_configs_saved_before_version_0_3_name_the_papers_filter():

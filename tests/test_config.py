@@ -23,13 +23,25 @@ def test_paper_presets_match_table_ii():
     ("learning_rate", -1e-3), ("batch_size", 0), ("num_batches", -1), ("warmup_samples", -5),
     ("hidden_size", True), ("capacity", 0), ("archive_capacity", 0), ("iso_sigma", -0.1),
     ("line_sigma", float("inf")), ("adaptation_step_size", 0), ("adaptation_steps", -1),
-    ("coverage_resolution", 4), ("neighbour_slack", -1), ("pool_factor", 0),
+    ("coverage_resolution", 4), ("neighbour_slack", -1), ("pool_factor", 0), ("steering_share", 1.0),
+    ("steering_share", -0.1),
 ])
 def test_invalid_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=f"Config.{field}="):
         Config(**{field: value})
     with pytest.raises(ValueError, match=f"Config.{field}="):
         dataclasses.replace(Config(), **{field: value})
+
+
+def test_mqd_refuses_a_steering_share_its_pool_cannot_hold():
+    # A pool of 1 x 100: steering 25 would leave the rule 75 of its 100 rollouts; 2 x 2 with 0.1 steers no row.
+    for kw in (dict(pool_factor=1), dict(pool_factor=2, population_size=2, steering_share=0.1),
+               dict(pool_factor=2, steering_share=0.6)):
+        with pytest.raises(ValueError, match=r"Config.steering_share=.*leaves population_size unsteered"):
+            Config(algorithm="mqd", **kw)
+    for kw in (dict(pool_factor=1, steering_share=0.0), dict(pool_factor=2, steering_share=0.5)):
+        assert Config(algorithm="mqd", **kw).pool_factor == kw["pool_factor"]
+    assert Config(algorithm="qd", pool_factor=1).steering_share == 0.25  # read by "mqd" only
 
 
 def test_population_larger_than_capacity_is_rejected():
