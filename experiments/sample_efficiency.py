@@ -84,6 +84,21 @@ def make_arm(joints: int = 10) -> PlanarArm:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class RuggedArm(PlanarArm):
+    """The planar arm with every angle 25 x its action (wrapped around the circle): a behavior that changes
+    quickly and repeatedly along every action axis, where a model learns little (the safety check)."""
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        angles = jnp.angle(jnp.exp(25j * actions))  # in (-pi, pi]
+        tip, _, valid = super().evaluate(angles, key)
+        return tip, -jnp.std(actions, axis=1), valid
+
+
+def make_rugged_arm(joints: int = 10) -> RuggedArm:
+    return RuggedArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class RastriginProjection(Task):
     """QD's Rastrigin projection (a classic benchmark, after QDax's rastrigin_proj): x in [-5.12, 5.12]^n,
     behavior = the means of x's two halves mapped to [0, 1]^2, quality = -Rastrigin(x) / Rastrigin's largest
@@ -103,7 +118,7 @@ def make_rastrigin(dims: int = 20) -> RastriginProjection:
 
 
 # Tasks defined here, registered by the experiments that name them.
-EXPERIMENT_TASKS = {"arm": make_arm, "rastrigin": make_rastrigin}
+EXPERIMENT_TASKS = {"arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin}
 
 
 def register_experiment_tasks(tasks: list[str]) -> None:
