@@ -213,6 +213,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),
     "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),  # "mqd" since version 0.5
+    **{f"mqd-quality-{q:g}": _replaced(steering=Steering(share=0.25, quality=q)) for q in (0.5, 1.0, 2.0)},
     "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0),  # "mqd" of version 0.4
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),

@@ -253,7 +253,8 @@ class ModelEmitter(Emitter):
                              f"expected at least 1, leaving the inner emitter at least the {num} rollouts of a "
                              "generation (a smaller share, or a larger pool)")
         jacobian = jax.vmap(jax.jacfwd(lambda a: self.predict(state, a, task)[0]))
-        children = self.steering.steer(key, repertoire, jacobian, task, params, count)
+        quality_gradient = jax.vmap(jax.grad(lambda a: self.predict(state, a, task)[1]))
+        children = self.steering.steer(key, repertoire, jacobian, task, params, count, quality_gradient)
         on = ~warm_up & (repertoire.count > 0)
         steered_rows = count if self._steering_pursuit is None else jnp.round(state.steering.share * count)
         steered = on & (jnp.arange(pool_size) >= pool_size - steered_rows)

@@ -18,6 +18,11 @@ proportion to novelty, also frontier-biased) and the step takes a direction
 uniform on the sphere. `step="mutation"` replaces the model's step by an iso
 mutation of the drawn skill: the same parents without the model (an ablation).
 
+With `quality` > 0 the child also climbs the model's predicted quality
+without moving its linearized behavior: the quality gradient g projected on
+the Jacobian's null space, (I - pinv(J) J) g, scaled to `quality` x the
+length of the behavior step's action change, is added to that change.
+
 Where behavior is smooth in the action (the planar arm, 2D Obstacle away
 from walls) the child lands near its aim, at a new niche's distance from
 its parent; where contact makes it rugged (2D Object) the step is as blind
@@ -61,6 +66,8 @@ class Steering:
         (drawn as IsoLine draws parents, in proportion to novelty, toward a direction uniform on the sphere).
       step: "jacobian" (the model's step toward the aim) or "mutation" (the ablation without the model: the
         parent's iso mutation, `params.iso_sigma` x the action range, as IsoLine's without its line term).
+      quality: the null-space step up the model's quality gradient, as a multiple of the behavior step's
+        action length (0: none; needs step="jacobian").
       pursuit: None to steer `share` of the pool at every generation, or a `pursuit.Fallback` whose share
         (from 1/2, within [floor, 1 - floor]) of those rows is steered: it pursues whichever of steered and
         other rollouts has recently opened new niches more often.
@@ -72,6 +79,7 @@ class Steering:
     parents: str = "voronoi"
     pursuit: Fallback | None = None
     step: str = "jacobian"
+    quality: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("share", "step_low", "step_high"):
@@ -87,6 +95,10 @@ class Steering:
             raise ValueError(f"Steering.step={self.step!r} is invalid: expected one of {STEPS}")
         if self.pursuit is not None and not isinstance(self.pursuit, Fallback):
             raise ValueError(f"Steering.pursuit={self.pursuit!r} is invalid: expected None or a Fallback")
+        if not (isinstance(self.quality, (int, float)) and not isinstance(self.quality, bool) and self.quality >= 0):
+            raise ValueError(f"Steering.quality={self.quality!r} is invalid: expected a float >= 0")
+        if self.quality and self.step != "jacobian":
+            raise ValueError(f"Steering.quality={self.quality!r} needs step='jacobian' (the model's quality gradient)")
         if self.step_low > self.step_high:
             raise ValueError(f"Steering: step_low={self.step_low!r} > step_high={self.step_high!r}")
 
@@ -95,8 +107,9 @@ class Steering:
         return round(self.share * pool_size)
 
     def steer(self, key: jax.Array, repertoire: Repertoire, jacobian: Jacobian, task: Task, params: Params,
-              num: int) -> jax.Array:
-        """[num, n] steered children of a non-empty repertoire (see the module's doc)."""
+              num: int, quality_gradient: Jacobian | None = None) -> jax.Array:
+        """[num, n] steered children of a non-empty repertoire (see the module's doc); `quality_gradient`
+        (actions [m, n] -> the model's quality gradients [m, n]) is needed with `quality` > 0."""
         low, high = action_bounds(task)
         if self.step == "mutation":
             k_target, k_step, k_iso = jax.random.split(key, 3)
@@ -106,7 +119,17 @@ class Steering:
         k_target, k_step = jax.random.split(key)
         parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)
         actions = repertoire.actions[parents]
-        return jacobian_step(actions, jacobian(actions), aim, task)
+        jacobians = jacobian(actions)
+        if not self.quality:
+            return jacobian_step(actions, jacobians, aim, task)
+        inverse = jnp.linalg.pinv(jacobians)
+        change = jnp.einsum("mnd,md->mn", inverse, aim)
+        gradient = quality_gradient(actions)
+        # The gradient's part that leaves the linearized behavior where it is: (I - pinv(J) J) g.
+        null = gradient - jnp.einsum("mnd,md->mn", inverse, jnp.einsum("mdn,mn->md", jacobians, gradient))
+        length = self.quality * jnp.linalg.norm(change, axis=1, keepdims=True)
+        change = change + length * null / jnp.maximum(jnp.linalg.norm(null, axis=1, keepdims=True), 1e-12)
+        return jnp.clip(actions + change, *action_bounds(task))
 
     def aims(self, k_target: jax.Array, k_step: jax.Array, repertoire: Repertoire, task: Task, params: Params,
              num: int) -> tuple[jax.Array, jax.Array]:

@@ -101,6 +101,26 @@ def test_a_mutation_step_is_an_iso_mutation_of_the_drawn_skill_without_the_model
     np.testing.assert_allclose(change.std(0), float(params.iso_sigma) * 20.0, rtol=0.05)
 
 
+def test_a_quality_step_climbs_the_gradient_without_moving_the_linearized_behavior(linear_task):
+    task = wide(linear_task)
+    rep = skills_at(task, CLOSE)
+    gradient = jnp.asarray([0.3, 1.0, -0.4], jnp.float32)
+    ascent = lambda actions: jnp.broadcast_to(gradient, actions.shape)  # noqa: E731
+    key, num = jax.random.PRNGKey(5), 200
+    plain = np.asarray(Steering().steer(key, rep, linear_jacobian, task, Params(), num))
+    climbed = np.asarray(Steering(quality=2.0).steer(key, rep, linear_jacobian, task, Params(), num, ascent))
+    extra = climbed - plain  # the same parents and aims: only the null-space step differs
+    np.testing.assert_allclose(extra @ A.T, 0.0, atol=1e-5)  # A's null space: the behavior is unchanged
+    parents = np.asarray(rep.actions)[np.linalg.norm(
+        np.asarray(task.evaluate(jnp.asarray(plain), None)[0])[:, None] - np.asarray(rep.behaviors[:3])[None],
+        axis=-1).argmin(1)]
+    behavior_step = np.linalg.norm(plain - parents, axis=1)
+    np.testing.assert_allclose(np.linalg.norm(extra, axis=1), 2.0 * behavior_step, rtol=1e-4)
+    # Along the null-space direction, which for a 1-D null space is +-(its unit vector), the sign g's.
+    null = np.linalg.svd(A)[2][-1]
+    assert (np.sign(extra @ null) == np.sign(float(np.asarray(gradient) @ null))).all()
+
+
 def test_steered_children_stay_in_the_action_box(linear_task):
     rep = skills_at(linear_task, [[0.99, -0.99, 0.99]])
     children = Steering(step_low=50.0, step_high=50.0).steer(jax.random.PRNGKey(2), rep, linear_jacobian,
@@ -113,7 +133,9 @@ def test_steered_children_stay_in_the_action_box(linear_task):
                                                ({"step_low": 2.0, "step_high": 1.0}, "step_low"),
                                                ({"step_high": True}, "step_high"),
                                                ({"parents": "uniform"}, "parents"),
-                                               ({"pursuit": 0.5}, "pursuit"), ({"step": "line"}, "step")])
+                                               ({"pursuit": 0.5}, "pursuit"), ({"step": "line"}, "step"),
+                                               ({"quality": -1.0}, "quality"),
+                                               ({"quality": 1.0, "step": "mutation"}, "quality")])
 def test_bad_steering_is_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         Steering(**kwargs)
@@ -147,6 +169,15 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.05)
     with pytest.raises(ValueError, match="leaving the inner emitter"):
         emitter._steered(key, state, pool, rep, linear_task, params, 25, jnp.bool_(False))
+    # With a quality step (through the network's own quality gradient) the same children also climb the
+    # predicted quality, while their predicted behavior still moves by the asked step.
+    climbing = dataclasses.replace(emitter, steering=dataclasses.replace(emitter.steering, quality=1.0))
+    climbed = climbing._steered(jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
+                                jnp.bool_(False))[0].actions[20:]
+    behaviors, qualities = climbing.predict(state, climbed, linear_task)
+    moved = behaviors - emitter.predict(state, rep.actions[:1], linear_task)[0]
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.1)
+    assert (np.asarray(qualities) > np.asarray(emitter.predict(state, children, linear_task)[1])).all()
 
 
 def test_a_steered_run_reports_its_steered_rollouts(tiny):
