@@ -119,17 +119,8 @@ class Steering:
         k_target, k_step = jax.random.split(key)
         parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)
         actions = repertoire.actions[parents]
-        jacobians = jacobian(actions)
-        if not self.quality:
-            return jacobian_step(actions, jacobians, aim, task)
-        inverse = jnp.linalg.pinv(jacobians)
-        change = jnp.einsum("mnd,md->mn", inverse, aim)
-        gradient = quality_gradient(actions)
-        # The gradient's part that leaves the linearized behavior where it is: (I - pinv(J) J) g.
-        null = gradient - jnp.einsum("mnd,md->mn", inverse, jnp.einsum("mdn,mn->md", jacobians, gradient))
-        length = self.quality * jnp.linalg.norm(change, axis=1, keepdims=True)
-        change = change + length * null / jnp.maximum(jnp.linalg.norm(null, axis=1, keepdims=True), 1e-12)
-        return jnp.clip(actions + change, *action_bounds(task))
+        gradients = quality_gradient(actions) if self.quality else None
+        return jacobian_step(actions, jacobian(actions), aim, task, gradients, self.quality)
 
     def aims(self, k_target: jax.Array, k_step: jax.Array, repertoire: Repertoire, task: Task, params: Params,
              num: int) -> tuple[jax.Array, jax.Array]:
@@ -150,7 +141,16 @@ class Steering:
         return parents, offset * jnp.minimum(1.0, step / jnp.maximum(distance, 1e-12))
 
 
-def jacobian_step(actions: jax.Array, jacobians: jax.Array, aim: jax.Array, task: Task) -> jax.Array:
+def jacobian_step(actions: jax.Array, jacobians: jax.Array, aim: jax.Array, task: Task,
+                  gradients: jax.Array | None = None, quality: float = 0.0) -> jax.Array:
     """Actions [m, n] moved by pinv(J) aim (Jacobians [m, d, n], aimed behavior changes [m, d]), clipped to the
-    task's action box: the least-norm change that makes the linearized behavior move by the aim."""
-    return jnp.clip(actions + jnp.einsum("mnd,md->mn", jnp.linalg.pinv(jacobians), aim), *action_bounds(task))
+    task's action box: the least-norm change that makes the linearized behavior move by the aim. With quality
+    gradients [m, n] and `quality` > 0, plus their null-space part (I - pinv(J) J) g at `quality` x that change's
+    length, which the linearized behavior does not see."""
+    inverse = jnp.linalg.pinv(jacobians)
+    change = jnp.einsum("mnd,md->mn", inverse, aim)
+    if quality:
+        null = gradients - jnp.einsum("mnd,md->mn", inverse, jnp.einsum("mdn,mn->md", jacobians, gradients))
+        length = quality * jnp.linalg.norm(change, axis=1, keepdims=True)
+        change = change + length * null / jnp.maximum(jnp.linalg.norm(null, axis=1, keepdims=True), 1e-12)
+    return jnp.clip(actions + change, *action_bounds(task))
