@@ -166,13 +166,15 @@ class VoronoiIsoLine(IsoLine):
 class MixedSteering(Steering):
     """Steering whose first half of children take the model's Jacobian step and the rest an iso mutation."""
 
-    def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int) -> jax.Array:
+    def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int,
+              quality_gradient: Any = None) -> jax.Array:
         half = num // 2
         k_jacobian, k_mutation = jax.random.split(key)
         aimed = dataclasses.replace(self, step="jacobian")
         mutated = dataclasses.replace(self, step="mutation")
-        return jnp.concatenate([Steering.steer(aimed, k_jacobian, repertoire, jacobian, task, params, half),
-                                Steering.steer(mutated, k_mutation, repertoire, jacobian, task, params, num - half)])
+        return jnp.concatenate([
+            Steering.steer(aimed, k_jacobian, repertoire, jacobian, task, params, half, quality_gradient),
+            Steering.steer(mutated, k_mutation, repertoire, jacobian, task, params, num - half)])
 
 
 @dataclasses.dataclass(frozen=True)
