@@ -157,9 +157,13 @@ class VoronoiIsoLine(IsoLine):
     def propose(self, key: jax.Array, state: Any, repertoire: Any, task: Task, params: Any, num: int) -> Any:
         proposal = super().propose(key, state, repertoire, task, params, num)
         count = round(self.share * num)
-        children = Steering(step="mutation").steer(jax.random.fold_in(key, 2), repertoire, None, task, params, count)
-        tail = jnp.where(repertoire.count > 0, children, proposal.actions[num - count:])
-        return proposal.replace(actions=proposal.actions.at[num - count:].set(tail))
+        children, parents = Steering(step="mutation").steer(jax.random.fold_in(key, 2), repertoire, None, task,
+                                                             params, count)
+        bred = repertoire.count > 0
+        tail = jnp.where(bred, children, proposal.actions[num - count:])
+        parents = jnp.where(bred, parents, proposal.parents[num - count:])
+        return proposal.replace(actions=proposal.actions.at[num - count:].set(tail),
+                                parents=proposal.parents.at[num - count:].set(parents))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,14 +171,14 @@ class MixedSteering(Steering):
     """Steering whose first half of children take the model's Jacobian step and the rest an iso mutation."""
 
     def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int,
-              quality_gradient: Any = None) -> jax.Array:
+              quality_gradient: Any = None) -> tuple[jax.Array, jax.Array]:
         half = num // 2
         k_jacobian, k_mutation = jax.random.split(key)
         aimed = dataclasses.replace(self, step="jacobian")
         mutated = dataclasses.replace(self, step="mutation")
-        return jnp.concatenate([
-            Steering.steer(aimed, k_jacobian, repertoire, jacobian, task, params, half, quality_gradient),
-            Steering.steer(mutated, k_mutation, repertoire, jacobian, task, params, num - half)])
+        parts = (Steering.steer(aimed, k_jacobian, repertoire, jacobian, task, params, half, quality_gradient),
+                 Steering.steer(mutated, k_mutation, repertoire, jacobian, task, params, num - half))
+        return jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,7 +210,8 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd": lambda cfg: "mqd",
     "mqd-no-fallback": _replaced(fallback=None),
     "mqd-not-anchored": _replaced(anchoring="none"),
-    "mqd-always-anchored": _replaced(anchoring="nearest"),
+    "mqd-always-anchored": _replaced(anchoring="always"),
+    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest"),  # "mqd" of version 0.5
     "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
     "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
     **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
@@ -214,9 +219,10 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),
-    "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),  # "mqd" since version 0.5
+    # "mqd" since version 0.5 (anchored at the parent since 0.6, as every composition built on the preset).
+    "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
     **{f"mqd-quality-{q:g}": _replaced(steering=Steering(share=0.25, quality=q)) for q in (0.5, 1.0, 2.0)},
-    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0),  # "mqd" of version 0.4
+    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest"),  # "mqd" of version 0.4
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
     "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
@@ -295,8 +301,11 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
             f"{curve['rollouts'][-1]:.0f}", *timing, *diagnostics]
 
 
-def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str:
+def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str | None:
+    """Draws the curves to `path` and returns it; None without matplotlib (`report.pyplot` says so)."""
     plt = report.pyplot()
+    if plt is None:
+        return None
     fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), squeeze=False)
     for ax, (task, by) in zip(axes[0], curves.items(), strict=True):
         for name, c in by.items():
@@ -321,9 +330,15 @@ def figure_path(out: str) -> str:
 
 
 def _preset_name(algorithm: str, cfg: Config) -> str:
-    """A sweep's preset as a composition's name: an "mqd" run without steering (version 0.4's) is
-    "mqd-unsteered"."""
-    return "mqd-unsteered" if algorithm == "mqd" and cfg.steering_share == 0 else algorithm
+    """A sweep's preset as a composition's name: an "mqd" run of version 0.4 (no steering, anchored at the
+    nearest skill) is "mqd-unsteered", one of version 0.5 (steered, nearest) "mqd-nearest-anchor"; other
+    settings of "mqd" than these and the default are named by their values."""
+    if algorithm != "mqd":
+        return algorithm
+    named = {(Config.steering_share, Config.anchor): "mqd", (0.0, "nearest"): "mqd-unsteered",
+             (Config.steering_share, "nearest"): "mqd-nearest-anchor"}
+    settings = (cfg.steering_share, cfg.anchor)
+    return named.get(settings, f"mqd (steering_share={settings[0]}, anchor={settings[1]})")
 
 
 def main() -> None:
@@ -337,6 +352,9 @@ def main() -> None:
                         "that folder's runs PRESET-SUFFIX (a variant beside the same presets in another folder)")
     parser.add_argument("--run", nargs="+", default=None, choices=list(COMPOSITIONS),
                         help="with --sweep: also run these compositions on the sweeps' tasks and seeds")
+    parser.add_argument("--baseline", nargs="+", default=[], metavar="JSON",
+                        help="take QD's curves (which no model change touches) from these earlier outputs of this "
+                        "script (NAME.json beside NAME.md, which names its machine and seeds) instead of running QD")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
@@ -344,6 +362,10 @@ def main() -> None:
     register_experiment_tasks(args.tasks)
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
+    known: dict[str, dict[str, dict[str, Any]]] = {}  # task -> {"qd": curve} from --baseline
+    for path in args.baseline:
+        with open(path) as f:
+            known |= {task: {"qd": by["qd"]} for task, by in json.load(f).items() if "qd" in by}
     if args.sweep:
         folders = [spec.partition("=") for spec in args.sweep]
         loaded = [results.load_runs(folder) for folder, _, _ in folders]
@@ -364,20 +386,26 @@ def main() -> None:
         for task in args.tasks:
             robot = registry.make(task).table_ii_column == "robot"
             names = ["qd"] + [n for n in args.compositions if n != "qd" and not (robot and n == "oracle")]
-            curves[task] = {name: _run(task, name, args.seeds, args.generations) for name in names}
+            curves[task] = {name: known[task][name] if name in known.get(task, {}) else
+                            _run(task, name, args.seeds, args.generations) for name in names}
         seeds = {args.seeds}
         command = (f"python experiments/sample_efficiency.py --tasks {' '.join(args.tasks)} --seeds {args.seeds} "
                    f"--compositions {' '.join(args.compositions)}"
-                   + (f" --generations {args.generations}" if args.generations else ""))
+                   + (f" --generations {args.generations}" if args.generations else "")
+                   + (f" --baseline {' '.join(args.baseline)}" if args.baseline else ""))
     missing = [t for t, by in curves.items() if "qd" not in by]
     if missing:
         raise SystemExit(f"no QD runs of {missing}: rollouts to QD needs them")
 
-    lines = [f"Command: `{command}`", "", f"Machine: {report.machine()}; seeds: {sorted(seeds)}.", "",
+    taken = sorted({n for task, by in curves.items() for n in by if n in known.get(task, {})})
+    lines = [f"Command: `{command}`", "", f"Machine: {report.machine()}; seeds: {sorted(seeds)}."
+             + (f" {', '.join(taken)}: from {', '.join(args.baseline)} (not run here; the machine and seeds are "
+                "in the .md beside it)." if taken else ""), "",
              "Rollouts to QD = fraction of QD's rollouts at which the mean coverage first reaches QD's final mean "
              "coverage. Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
              "final value). Quality = the repertoire's mean quality after QD's rollouts."
-             + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's.")
+             + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's "
+                "(blank where QD's curve was not run here).")
              + " Opener AUC, model share, steered, steering share: the model's diagnostics `opener_auc`, "
              "`model_share`, `steered` (rollouts per generation) and `steering_share` (README, \"Metrics\"; AUC 0.5 = "
              "chance), averaged over seeds and the generations past warm-up.",
@@ -386,12 +414,16 @@ def main() -> None:
               "rollouts", "ms/gen", "x QD", "opener AUC", "model share", "steered", "steering share"]
     for task, by in curves.items():
         lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        lines += ["| " + " | ".join(_row(n, c, by["qd"], not args.sweep)) + " |" for n, c in by.items()]
+        # Times are ratios within one invocation: none where QD's curve came from another.
+        timed = not args.sweep and "qd" not in known.get(task, {})
+        lines += ["| " + " | ".join(_row(n, c, by["qd"], timed)) + " |" for n, c in by.items()]
         lines.append("")
     report.write(lines, args.out)
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
         json.dump(curves, f)
-    print(_figure(curves, args.figure or figure_path(args.out)))
+    figure = _figure(curves, args.figure or figure_path(args.out))
+    if figure:
+        print(figure)
 
 
 if __name__ == "__main__":

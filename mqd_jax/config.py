@@ -28,6 +28,7 @@ from flax import struct
 
 from mqd_jax import registry
 from mqd_jax.emitters import Emitter
+from mqd_jax.model_emitter import ANCHORS
 from mqd_jax.task import Task
 
 # The named emitters `Config.algorithm` may give (built by `mqd_jax.presets`).
@@ -104,7 +105,7 @@ class Config:
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
     model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism, steering_share; "mqd-paper":
+    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor; "mqd-paper":
     t_nov, t_qua, budgeted) configure the model presets; a composed emitter carries its own
     settings.
     """
@@ -148,6 +149,9 @@ class Config:
     # "mqd": the share of the pool replaced by children the model's Jacobian
     # aims at empty behavior space (steering.Steering; 0 = none, version 0.4's "mqd").
     steering_share: float = 0.25
+    # "mqd": where the model's predictions are anchored (ModelEmitter.anchor): "parent", the skill a
+    # candidate was varied from, or "nearest", the nearest skill in action space (a search; version 0.5's).
+    anchor: str = "parent"
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate
     # exactly `population_size` of them (see acquisition.Budgeted).
@@ -184,6 +188,7 @@ class Config:
                f"False unless algorithm='mqd-paper' (it is {self.algorithm!r})")
         _check(_is_real(self.steering_share) and 0 <= self.steering_share < 1, "steering_share", self.steering_share,
                "a float in [0, 1)")
+        _check(self.anchor in ANCHORS, "anchor", self.anchor, f"one of {ANCHORS}")
         pool = self.pool_factor * self.population_size
         steered = round(self.steering_share * pool)
         _check(self.algorithm != "mqd" or self.steering_share == 0 or 1 <= steered <= pool - self.population_size,
@@ -274,7 +279,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     """A config dict saved by an earlier version in today's fields: `physics_backend` "auto" is dropped (since
     version 0.2 a robot task's backend is an option of its construction, `task_options`); before version 0.3
     (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
-    defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer."""
+    defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer; before version
+    0.6 (configs without `anchor`) it anchored at the nearest skill."""
     saved = dict(saved)
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
@@ -284,6 +290,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
             saved[name] = Config.__dataclass_fields__[name].default
     if "steering_share" not in saved:  # before version 0.5 "mqd" did not steer
         saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.steering_share
+    if "anchor" not in saved:  # before version 0.6 "mqd" anchored at the nearest skill
+        saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else Config.anchor
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}

@@ -48,11 +48,16 @@ class Proposal:
       info: any pytree the emitter hands to its own `update` (e.g. the model's
         predictions). A wrapper that keeps some rows of its inner emitter's
         proposal keeps the same rows of every leaf whose leading axis is num.
+      parents: [num] int32, the repertoire slot of the skill each candidate was
+        varied from (its first parent), -1 for a candidate with none (uniform);
+        or None where the emitter does not say. Read by a wrapper
+        (`ModelEmitter` anchors its predictions there); `update` is not given it.
     """
 
     actions: jax.Array
     rollout: jax.Array
     info: Any = ()
+    parents: jax.Array | None = None
 
 
 @struct.dataclass
@@ -116,14 +121,16 @@ class Uniform(Emitter):
 
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
-        return Proposal(variation.uniform(_uniform_key(key), num, *action_bounds(task)), jnp.ones(num, bool))
+        return Proposal(variation.uniform(_uniform_key(key), num, *action_bounds(task)), jnp.ones(num, bool),
+                        parents=jnp.full(num, -1, jnp.int32))
 
 
 @dataclasses.dataclass(frozen=True)
 class IsoLine(Emitter):
     """QD: parents drawn in proportion to novelty, iso+line children (`params.iso_sigma`, `params.line_sigma`).
 
-    Uniform actions while the repertoire is empty; every candidate is rolled out.
+    Uniform actions while the repertoire is empty; every candidate is rolled out. A child's `parents` entry is
+    its first parent x1, from which the iso noise starts (-1 for a uniform action).
     """
 
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
@@ -134,4 +141,6 @@ class IsoLine(Emitter):
         parents = selection.sample_parents(k_parents, repertoire.novelty, repertoire.valid, 2 * num)
         x = repertoire.actions[parents].reshape(2, num, -1)
         children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma, params.line_sigma, low, high)
-        return Proposal(jnp.where(repertoire.count > 0, children, fresh), jnp.ones(num, bool))
+        bred = repertoire.count > 0
+        return Proposal(jnp.where(bred, children, fresh), jnp.ones(num, bool),
+                        parents=jnp.where(bred, parents[:num], -1).astype(jnp.int32))

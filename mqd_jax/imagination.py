@@ -69,7 +69,7 @@ class Imagination(ModelEmitter):
                 num: int) -> Proposal:
         def imagine(rep: Repertoire, key: jax.Array) -> tuple[Repertoire, tuple[Any, ...]]:
             pool = self.inner.propose(key, state.inner, rep, task, params, num)
-            plain, anchored = self.predictions(state, pool.actions, rep, task)
+            plain, anchored = self.predictions(state, pool.actions, rep, task, pool.parents)
             predicted = self.chosen(state, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,
                                              params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32)
@@ -93,4 +93,5 @@ class Imagination(ModelEmitter):
                 "discarded": (wanted & ~rollout).sum(dtype=jnp.int32)}
         if self.anchoring == "auto":
             info["both_behaviors"] = jnp.stack([flat(y)[:, :-1] for y in both])
+        # No parents: an imagined candidate's parent may be an imagined skill, not one of `repertoire`'s.
         return Proposal(flat(pools.actions), rollout, info)

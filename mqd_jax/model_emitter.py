@@ -13,15 +13,20 @@ model's state and reports the model's metrics; any emitter can be the inner one.
 
 Two options change what the model says and how much it is trusted:
 
-* `anchoring`: "nearest" anchors a candidate's prediction at the repertoire
-  skill nearest to it in (normalized) action space, whose true outcome is
-  known: b~(a) = b(a_j) + phi(a) - phi(a_j), and likewise the quality. The
-  model then only has to predict differences between nearby actions, which
-  helps where behavior is smooth in the action and hurts across
-  discontinuities (contact). "auto" keeps an exponential average (weight
-  `ERROR_AVERAGING`) of both predictions' held-out behavior error on every
-  generation's rollouts and uses the one whose average is lower (the plain one
-  until both have one).
+* `anchoring`: "always" anchors a candidate's prediction at a repertoire
+  skill a_j near it, whose true outcome is known: b~(a) = b(a_j) + phi(a) -
+  phi(a_j), and likewise the quality. The model then only has to predict
+  differences between nearby actions, which helps where behavior is smooth in
+  the action and hurts across discontinuities (contact). "auto" keeps an
+  exponential average (weight `ERROR_AVERAGING`) of both predictions'
+  held-out behavior error on every generation's rollouts and uses the one
+  whose average is lower (the plain one until both have one). `anchor` says
+  which skill: "parent", the one the candidate was varied from, as the inner
+  emitter names it (`Proposal.parents`; a steered child's is its steering
+  parent; a candidate without one, -1, keeps its plain prediction; an inner
+  emitter that names none, None, gets the nearest); "nearest", the skill
+  nearest to it in normalized action space, found by a search over the
+  repertoire (the costliest step of a generation on a 2D task).
 * `fallback` (`Fallback`): a share of each generation's rollouts goes to the
   model's choice and the rest to the inner emitter's own first candidates; the
   share pursues whichever side's rollouts have recently opened new niches
@@ -59,7 +64,8 @@ if TYPE_CHECKING:
 _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
             "opener_auc": jnp.float32}
 TRAINING_DATA = ("repertoire", "rollouts")
-ANCHORING = ("none", "nearest", "auto")
+ANCHORING = ("none", "always", "auto")
+ANCHORS = ("parent", "nearest")
 # The weight of a generation's held-out error in anchoring="auto"'s averages.
 ERROR_AVERAGING = 0.2
 
@@ -102,8 +108,10 @@ class ModelEmitter(Emitter):
       ensemble_size: the members of the model's ensemble.
       batch_size, num_batches: training mini-batches per generation (per member).
       warmup_samples: rollouts before the model is trained and used.
-      anchoring: "none", "nearest" (predictions anchored at the nearest repertoire skill in action space) or
-        "auto" (whichever of the two has the lower recent held-out error; see the module's doc).
+      anchoring: "none", "always" (predictions anchored at a repertoire skill, `anchor`) or "auto" (whichever
+        of the plain and the anchored ones has the lower recent held-out error; see the module's doc).
+      anchor: where anchored predictions are anchored: "parent" (the candidate's parent, as the inner emitter
+        names it) or "nearest" (the repertoire skill nearest in normalized action space; a search).
       training_data: "repertoire" (its skills, as the paper) or "rollouts" (the
         latest `rollout_buffer` usable rollouts of this emitter, in a ring buffer).
       rollout_buffer: the size of that buffer.
@@ -134,6 +142,7 @@ class ModelEmitter(Emitter):
     num_batches: int = 500
     warmup_samples: int = 0
     anchoring: str = "none"
+    anchor: str = "parent"
     training_data: str = "repertoire"
     rollout_buffer: int = 4096
     fallback: Fallback | None = None
@@ -147,8 +156,13 @@ class ModelEmitter(Emitter):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
+        if self.anchoring == "nearest":
+            raise ValueError("ModelEmitter.anchoring='nearest' was split in version 0.6: anchoring='always' "
+                             "anchors every prediction, at the skill `anchor` names (anchor='nearest' as before)")
         if self.anchoring not in ANCHORING:
             raise ValueError(f"ModelEmitter.anchoring={self.anchoring!r} is invalid: expected one of {ANCHORING}")
+        if self.anchor not in ANCHORS:
+            raise ValueError(f"ModelEmitter.anchor={self.anchor!r} is invalid: expected one of {ANCHORS}")
         if self.training_data not in TRAINING_DATA:
             raise ValueError(f"ModelEmitter.training_data={self.training_data!r} is invalid: expected one of "
                              f"{TRAINING_DATA}")
@@ -178,10 +192,11 @@ class ModelEmitter(Emitter):
         predict otherwise (an experiment's oracle returns the true outcomes)."""
         return model.predict_members(state.model, actions, task)
 
-    def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task) -> (
-            acquisition.Judged):
-        """The model's view of actions [N, n] against the repertoire (anchored as `anchoring` says)."""
-        return self._judged(state, *self.predictions(state, actions, repertoire, task), repertoire)
+    def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
+              parents: jax.Array | None = None) -> acquisition.Judged:
+        """The model's view of actions [N, n] (with their parents' slots [N], or None) against the repertoire
+        (anchored as `anchoring` and `anchor` say)."""
+        return self._judged(state, *self.predictions(state, actions, repertoire, task, parents), repertoire)
 
     def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
                 repertoire: Repertoire) -> acquisition.Judged:
@@ -200,24 +215,30 @@ class ModelEmitter(Emitter):
     def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
         """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
         whichever had the lower recent held-out error."""
-        if self.anchoring == "nearest":
+        if self.anchoring == "always":
             return anchored
         if self.anchoring == "auto":
             return jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
         return plain
 
-    def predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire,
-                    task: Task) -> tuple[jax.Array, jax.Array | None]:
-        """The members' plain predictions [E, N, d + 1] and, unless `anchoring` is "none", the anchored ones."""
+    def predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
+                    parents: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
+        """The members' plain predictions [E, N, d + 1] of actions [N, n] and, unless `anchoring` is "none", the
+        anchored ones: at the parents' slots [N] (-1: not anchored) with anchor="parent" and parents given, else
+        at the nearest skills."""
         plain = self.members(state, actions, task)
         if self.anchoring == "none":
             return plain, None
-        units = lambda a: model.normalize_actions(a, task)  # noqa: E731
-        # Many action dimensions: distances by matrix product (an anchor need only be near, not exactly nearest).
-        _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
+        if self.anchor == "parent" and parents is not None:
+            anchor, anchored_rows = jnp.maximum(parents, 0), (parents >= 0)[:, None]
+        else:
+            units = lambda a: model.normalize_actions(a, task)  # noqa: E731
+            # Many action dimensions: distances by matrix product (an anchor need only be near, not exactly nearest).
+            _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
+            anchored_rows = repertoire.count > 0
         known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
         anchored = known + plain - self.members(state, repertoire.actions[anchor], task)
-        return plain, jnp.where(repertoire.count > 0, anchored, plain)
+        return plain, jnp.where(anchored_rows, anchored, plain)
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
@@ -227,7 +248,7 @@ class ModelEmitter(Emitter):
         if self.steering is not None:
             pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
                                           warm_up)
-        plain, anchored = self.predictions(state, pool.actions, repertoire, task)
+        plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
         judged = self._judged(state, plain, anchored, repertoire)
         rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)
         from_model = jnp.ones(num, bool)
@@ -240,12 +261,13 @@ class ModelEmitter(Emitter):
             info["steered"] = steered[rows] & rollout
         if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
             info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
-        return Proposal(pool.actions[rows], rollout, info)
+        return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows])
 
     def _steered(self, key: jax.Array, state: ModelEmitterState, pool: Proposal, repertoire: Repertoire, task: Task,
                  params: Params, num: int, warm_up: jax.Array) -> tuple[Proposal, jax.Array]:
         """The pool [P] with its last rows replaced by steered children (not during warm-up or while the repertoire
-        is empty), and which rows [P] were."""
+        is empty; their `parents` by the steering parents where the pool names parents), and which rows [P]
+        were."""
         pool_size = pool.actions.shape[0]
         count = self.steering.count(pool_size)
         if count == 0 or pool_size - count < num:
@@ -254,13 +276,16 @@ class ModelEmitter(Emitter):
                              "generation (a smaller share, or a larger pool)")
         jacobian = jax.vmap(jax.jacfwd(lambda a: self.predict(state, a, task)[0]))
         quality_gradient = jax.vmap(jax.grad(lambda a: self.predict(state, a, task)[1]))
-        children = self.steering.steer(key, repertoire, jacobian, task, params, count, quality_gradient)
+        children, parents = self.steering.steer(key, repertoire, jacobian, task, params, count, quality_gradient)
         on = ~warm_up & (repertoire.count > 0)
         steered_rows = count if self._steering_pursuit is None else jnp.round(state.steering.share * count)
         steered = on & (jnp.arange(pool_size) >= pool_size - steered_rows)
         tail = steered[pool_size - count:, None]
         actions = pool.actions.at[pool_size - count:].set(jnp.where(tail, children, pool.actions[pool_size - count:]))
-        return pool.replace(actions=actions), steered
+        if pool.parents is not None:
+            parents = pool.parents.at[pool_size - count:].set(
+                jnp.where(tail[:, 0], parents, pool.parents[pool_size - count:]))
+        return pool.replace(actions=actions, parents=None if pool.parents is None else parents), steered
 
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
                repertoire: Repertoire, task: Task, params: Params) -> tuple[ModelEmitterState, dict[str, jax.Array]]:

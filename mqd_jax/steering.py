@@ -107,24 +107,26 @@ class Steering:
         return round(self.share * pool_size)
 
     def steer(self, key: jax.Array, repertoire: Repertoire, jacobian: Jacobian, task: Task, params: Params,
-              num: int, quality_gradient: Jacobian | None = None) -> jax.Array:
-        """[num, n] steered children of a non-empty repertoire (see the module's doc); `quality_gradient`
-        (actions [m, n] -> the model's quality gradients [m, n]) is needed with `quality` > 0."""
+              num: int, quality_gradient: Jacobian | None = None) -> tuple[jax.Array, jax.Array]:
+        """[num, n] steered children of a non-empty repertoire (see the module's doc) and their parents' slots
+        [num] int32; `quality_gradient` (actions [m, n] -> the model's quality gradients [m, n]) is needed with
+        `quality` > 0."""
         low, high = action_bounds(task)
         if self.step == "mutation":
             k_target, k_step, k_iso = jax.random.split(key, 3)
             parents, _ = self.aims(k_target, k_step, repertoire, task, params, num)
             change = params.iso_sigma * (high - low) * jax.random.normal(k_iso, (num, low.shape[0]))
-            return jnp.clip(repertoire.actions[parents] + change, low, high)
+            return jnp.clip(repertoire.actions[parents] + change, low, high), parents
         k_target, k_step = jax.random.split(key)
         parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)
         actions = repertoire.actions[parents]
         gradients = quality_gradient(actions) if self.quality else None
-        return jacobian_step(actions, jacobian(actions), aim, task, gradients, self.quality)
+        return jacobian_step(actions, jacobian(actions), aim, task, gradients, self.quality), parents
 
     def aims(self, k_target: jax.Array, k_step: jax.Array, repertoire: Repertoire, task: Task, params: Params,
              num: int) -> tuple[jax.Array, jax.Array]:
-        """The steered children's parents (slots [num]) and the behavior changes [num, d] they are aimed at."""
+        """The steered children's parents (slots [num] int32) and the behavior changes [num, d] they are aimed
+        at."""
         if self.parents == "voronoi":
             behavior_low = jnp.asarray(task.behavior_low, jnp.float32)
             behavior_high = jnp.asarray(task.behavior_high, jnp.float32)

@@ -137,7 +137,7 @@ class _Known(ModelEmitter):
 def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
-    emitter = _Known(IsoLine(), Diverse(), anchoring="nearest", k=1)
+    emitter = _Known(IsoLine(), Diverse(), anchoring="always", anchor="nearest", k=1)
     got = emitter.judge(None, pool, rep, linear_task)
     for i, a in enumerate(np.asarray(pool)):
         j = int(np.argmin([np.sum((a - r) ** 2) for r in np.asarray(rep.actions[:2])]))  # action box [-1, 1]: x1
@@ -156,6 +156,30 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     # An empty repertoire has nothing to anchor at: the plain prediction.
     empty = emitter.judge(None, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
     np.testing.assert_allclose(empty.behaviors, plain.behaviors)
+
+
+def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
+    rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
+    pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
+    emitter = _Known(IsoLine(), Diverse(), anchoring="always", k=1)
+    assert emitter.anchor == "parent"
+    # Row 0's parent is the skill farther from it in action space (slot 1), row 1's slot 0; row 2 has none.
+    got = emitter.judge(None, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
+    for i, j in ((0, 1), (1, 0)):
+        a, p = np.asarray(pool[i]), np.asarray(rep.actions[j])
+        # The members' offsets cancel: b(parent) + (a - parent) on the behavior axes, q(parent) + a2 - p2.
+        np.testing.assert_allclose(got.behaviors[i], np.asarray(rep.behaviors[j]) + (a - p)[:2], rtol=1e-6)
+        np.testing.assert_allclose(got.qualities[i], float(rep.qualities[j]) + a[2] - p[2], rtol=1e-6)
+    plain = dataclasses.replace(emitter, anchoring="none").judge(None, pool, rep, linear_task)
+    np.testing.assert_allclose(got.behaviors[2], plain.behaviors[2])  # no parent: the plain prediction
+    # An inner emitter that names no parents: anchored at the nearest skill, as anchor="nearest".
+    nearest = dataclasses.replace(emitter, anchor="nearest").judge(None, pool, rep, linear_task)
+    np.testing.assert_allclose(emitter.judge(None, pool, rep, linear_task).behaviors, nearest.behaviors)
+    assert not np.allclose(got.behaviors[:2], nearest.behaviors[:2])
+    with pytest.raises(ValueError, match=r"anchoring='nearest' was split in version 0.6"):
+        ModelEmitter(IsoLine(), anchoring="nearest")
+    with pytest.raises(ValueError, match=r"ModelEmitter\.anchor="):
+        ModelEmitter(IsoLine(), anchor="first")
 
 
 def test_greedy_diverse_by_hand():
@@ -263,8 +287,9 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
                steering_share=0.3)
     assert presets.emitter(cfg) == ModelEmitter(
         IsoLine(), Diverse(3, 0.5), k=cfg.k, hidden_size=cfg.hidden_size, ensemble_size=2,
-        batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", fallback=Fallback(),
-        steering=Steering(share=0.3))
+        batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", anchor="parent",
+        fallback=Fallback(), steering=Steering(share=0.3))
+    assert presets.emitter(dataclasses.replace(cfg, anchor="nearest")).anchor == "nearest"  # version 0.5's
     assert presets.emitter(dataclasses.replace(cfg, steering_share=0.0)).steering is None  # version 0.4's "mqd"
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
@@ -305,11 +330,16 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
         ModelEmitter(IsoLine(), training_data="archive")
 
 
-def test_mqd_configs_saved_before_version_0_5_do_not_steer():
-    for algorithm, share in (("mqd", 0.0), ("qd", Config().steering_share), ("mqd-paper", Config().steering_share)):
+def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor_at_the_nearest_skill():
+    default = Config()
+    for algorithm, share, anchor in (("mqd", 0.0, "nearest"), ("qd", default.steering_share, default.anchor),
+                                     ("mqd-paper", default.steering_share, default.anchor)):
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["steering_share"]
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share)
+        del saved["steering_share"], saved["anchor"]  # version 0.4's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share, anchor=anchor)
+        saved = Config(algorithm=algorithm).to_dict()
+        del saved["anchor"]  # version 0.5's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor)
     assert Config().steering_share == 0.25 and presets.emitter(Config(algorithm="mqd")).steering == Steering(0.25)
 
 

@@ -46,8 +46,8 @@ CLOSE = [[0.0, 0.0, 0.0], [0.2, 0.0, -0.1], [0.0, 0.0, 0.15]]
 def test_a_steered_child_is_a_min_norm_step_from_the_skill_nearest_to_it(linear_task):
     task = wide(linear_task)
     rep = skills_at(task, CLOSE)
-    children = Steering(step_low=1.0, step_high=3.0).steer(jax.random.PRNGKey(0), rep, linear_jacobian, task,
-                                                           Params(), 400)
+    children, named = Steering(step_low=1.0, step_high=3.0).steer(jax.random.PRNGKey(0), rep, linear_jacobian,
+                                                                  task, Params(), 400)
     b, _, _ = task.evaluate(children, None)
     skills = np.asarray(rep.behaviors[:3])
     d = np.linalg.norm(np.asarray(b)[:, None] - skills[None], axis=-1)
@@ -58,6 +58,7 @@ def test_a_steered_child_is_a_min_norm_step_from_the_skill_nearest_to_it(linear_
     step = d.min(1)
     assert (step <= 3 * T_DIST + 1e-5).all() and (step < T_DIST - 1e-5).mean() < 0.02
     assert len(set(parent)) == 3
+    np.testing.assert_array_equal(named, parent)  # the parents it names are the ones stepped from
     # The action changed by the least-norm change that makes the behavior change: pinv(A) (b' - b_j).
     change = np.asarray(children) - np.asarray(CLOSE, np.float32)[parent]
     expected = (np.linalg.pinv(A) @ (np.asarray(b) - skills[parent]).T).T
@@ -68,8 +69,8 @@ def test_a_step_longer_than_the_way_ends_on_the_target(linear_task):
     # Targets are uniform in the behavior box: the children of steps that reach them are, too.
     task = wide(linear_task)
     rep = skills_at(task, CLOSE)
-    children = Steering(step_low=100.0, step_high=100.0).steer(jax.random.PRNGKey(1), rep, linear_jacobian, task,
-                                                               Params(), 2000)
+    children, _ = Steering(step_low=100.0, step_high=100.0).steer(jax.random.PRNGKey(1), rep, linear_jacobian,
+                                                                  task, Params(), 2000)
     b = np.asarray(task.evaluate(children, None)[0])
     assert (b > -1e-5).all() and (b < 1 + 1e-5).all()
     np.testing.assert_allclose(b.mean(0), [0.5, 0.5], atol=0.03)
@@ -79,7 +80,8 @@ def test_a_step_longer_than_the_way_ends_on_the_target(linear_task):
 def test_novelty_parents_step_in_every_direction(linear_task):
     task = wide(linear_task)
     rep = skills_at(task, CLOSE[:1])
-    children = Steering(parents="novelty").steer(jax.random.PRNGKey(3), rep, linear_jacobian, task, Params(), 400)
+    children, _ = Steering(parents="novelty").steer(jax.random.PRNGKey(3), rep, linear_jacobian, task, Params(),
+                                                    400)
     offset = np.asarray(task.evaluate(children, None)[0]) - np.asarray(rep.behaviors[0])
     step = np.linalg.norm(offset, axis=1)
     assert (step >= T_DIST - 1e-5).all() and (step <= 3 * T_DIST + 1e-5).all()
@@ -95,7 +97,8 @@ def test_a_mutation_step_is_an_iso_mutation_of_the_drawn_skill_without_the_model
         raise AssertionError("a mutation step asks the model for no Jacobian")
 
     params = Config().params()
-    children = Steering(step="mutation").steer(jax.random.PRNGKey(4), rep, no_model, task, params, 4000)
+    children, parents = Steering(step="mutation").steer(jax.random.PRNGKey(4), rep, no_model, task, params, 4000)
+    np.testing.assert_array_equal(parents, 0)  # the one skill
     change = np.asarray(children) - np.asarray(CLOSE[0], np.float32)
     np.testing.assert_allclose(change.mean(0), 0.0, atol=0.02)
     np.testing.assert_allclose(change.std(0), float(params.iso_sigma) * 20.0, rtol=0.05)
@@ -107,8 +110,8 @@ def test_a_quality_step_climbs_the_gradient_without_moving_the_linearized_behavi
     gradient = jnp.asarray([0.3, 1.0, -0.4], jnp.float32)
     ascent = lambda actions: jnp.broadcast_to(gradient, actions.shape)  # noqa: E731
     key, num = jax.random.PRNGKey(5), 200
-    plain = np.asarray(Steering().steer(key, rep, linear_jacobian, task, Params(), num))
-    climbed = np.asarray(Steering(quality=2.0).steer(key, rep, linear_jacobian, task, Params(), num, ascent))
+    plain = np.asarray(Steering().steer(key, rep, linear_jacobian, task, Params(), num)[0])
+    climbed = np.asarray(Steering(quality=2.0).steer(key, rep, linear_jacobian, task, Params(), num, ascent)[0])
     extra = climbed - plain  # the same parents and aims: only the null-space step differs
     np.testing.assert_allclose(extra @ A.T, 0.0, atol=1e-5)  # A's null space: the behavior is unchanged
     parents = np.asarray(rep.actions)[np.linalg.norm(
@@ -123,8 +126,8 @@ def test_a_quality_step_climbs_the_gradient_without_moving_the_linearized_behavi
 
 def test_steered_children_stay_in_the_action_box(linear_task):
     rep = skills_at(linear_task, [[0.99, -0.99, 0.99]])
-    children = Steering(step_low=50.0, step_high=50.0).steer(jax.random.PRNGKey(2), rep, linear_jacobian,
-                                                             linear_task, Params(), 64)
+    children, _ = Steering(step_low=50.0, step_high=50.0).steer(jax.random.PRNGKey(2), rep, linear_jacobian,
+                                                                linear_task, Params(), 64)
     assert (np.abs(np.asarray(children)) <= 1.0).all()
     assert (np.abs(np.asarray(children)) == 1.0).any()  # some were clipped
 
@@ -178,6 +181,29 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     moved = behaviors - emitter.predict(state, rep.actions[:1], linear_task)[0]
     np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.1)
     assert (np.asarray(qualities) > np.asarray(emitter.predict(state, children, linear_task)[1])).all()
+
+
+def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
+    """With no variation (sigmas 0) every child is its parent's action: IsoLine's and a mutation step's alike, so
+    the parents a ModelEmitter's proposal names (IsoLine's first parents, the steered rows' steering parents,
+    kept with the rows the rule chose) hold exactly the proposed actions."""
+    emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), hidden_size=8, anchoring="always",
+                           steering=Steering(share=0.5, step="mutation"))
+    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    rep = skills_at(linear_task, [[0.1 * i, -0.05 * i, 0.02 * i * i] for i in range(8)])
+    params = Config(iso_sigma=0.0, line_sigma=0.0).params()
+    pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, linear_task, params, 48)
+    steered_pool, steered = emitter._steered(jax.random.PRNGKey(2), state, pool, rep, linear_task, params, 12,
+                                             jnp.bool_(False))
+    assert steered.sum() == 24 and (np.asarray(steered_pool.parents) >= 0).all()
+    np.testing.assert_array_equal(steered_pool.actions, np.asarray(rep.actions)[np.asarray(steered_pool.parents)])
+    proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task, params, 12)
+    parents = np.asarray(proposal.parents)
+    assert (parents >= 0).all() and len(set(parents)) > 1
+    np.testing.assert_array_equal(proposal.actions, np.asarray(rep.actions)[parents])
+    # Before the first skill there is no parent: IsoLine's uniform candidates name -1.
+    first = IsoLine().propose(jax.random.PRNGKey(2), (), Repertoire.empty(16, 3, 2, 4), linear_task, params, 5)
+    np.testing.assert_array_equal(first.parents, -1)
 
 
 def test_a_steered_run_reports_its_steered_rollouts(tiny):
