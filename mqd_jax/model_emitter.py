@@ -276,16 +276,19 @@ class ModelEmitter(Emitter):
                              "generation (a smaller share, or a larger pool)")
         jacobian = jax.vmap(jax.jacfwd(lambda a: self.predict(state, a, task)[0]))
         quality_gradient = jax.vmap(jax.grad(lambda a: self.predict(state, a, task)[1]))
-        children, parents = self.steering.steer(key, repertoire, jacobian, task, params, count, quality_gradient)
+        children, steering_parents = self.steering.steer(key, repertoire, jacobian, task, params, count,
+                                                         quality_gradient)
         on = ~warm_up & (repertoire.count > 0)
         steered_rows = count if self._steering_pursuit is None else jnp.round(state.steering.share * count)
         steered = on & (jnp.arange(pool_size) >= pool_size - steered_rows)
-        tail = steered[pool_size - count:, None]
-        actions = pool.actions.at[pool_size - count:].set(jnp.where(tail, children, pool.actions[pool_size - count:]))
-        if pool.parents is not None:
-            parents = pool.parents.at[pool_size - count:].set(
-                jnp.where(tail[:, 0], parents, pool.parents[pool_size - count:]))
-        return pool.replace(actions=actions, parents=None if pool.parents is None else parents), steered
+
+        def spliced(rows: jax.Array, steered_values: jax.Array) -> jax.Array:
+            """rows [P, ...] with the steered ones among the last `count` taken from steered_values [count, ...]."""
+            on_tail = steered[pool_size - count:].reshape((count,) + (1,) * (rows.ndim - 1))
+            return rows.at[pool_size - count:].set(jnp.where(on_tail, steered_values, rows[pool_size - count:]))
+
+        parents = None if pool.parents is None else spliced(pool.parents, steering_parents)
+        return pool.replace(actions=spliced(pool.actions, children), parents=parents), steered
 
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
                repertoire: Repertoire, task: Task, params: Params) -> tuple[ModelEmitterState, dict[str, jax.Array]]:
