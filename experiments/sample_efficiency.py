@@ -341,6 +341,26 @@ def _preset_name(algorithm: str, cfg: Config) -> str:
     return named.get(settings, f"mqd (steering_share={settings[0]}, anchor={settings[1]})")
 
 
+def _baselines(paths: list[str], tasks: list[str], seeds: int, generations: int | None) -> dict[str, dict[str, Any]]:
+    """task -> {"qd": curve} from earlier outputs (JSON) of this script, refused before anything runs where a task's
+    QD curve stands in two of them or was run with other seeds or generations than asked."""
+    known: dict[str, dict[str, Any]] = {}
+    for path in paths:
+        with open(path) as f:
+            for task, by in json.load(f).items():
+                if task not in tasks or "qd" not in by:
+                    continue
+                if task in known:
+                    raise SystemExit(f"--baseline: QD's curve of {task} stands in two files; name one")
+                qd = by["qd"]
+                expected = generations or Config.paper(task).max_generations
+                if len(qd["final_coverage"]) != seeds or len(qd["rollouts"]) != expected:
+                    raise SystemExit(f"--baseline {path}: QD's {task} curve has {len(qd['final_coverage'])} seeds and "
+                                     f"{len(qd['rollouts'])} generations, not the {seeds} and {expected} asked")
+                known[task] = {"qd": qd}
+    return known
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
@@ -362,10 +382,9 @@ def main() -> None:
     register_experiment_tasks(args.tasks)
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
-    known: dict[str, dict[str, dict[str, Any]]] = {}  # task -> {"qd": curve} from --baseline
-    for path in args.baseline:
-        with open(path) as f:
-            known |= {task: {"qd": by["qd"]} for task, by in json.load(f).items() if "qd" in by}
+    known = _baselines(args.baseline, args.tasks, args.seeds, args.generations) if args.baseline else {}
+    if known and args.sweep:
+        raise SystemExit("--baseline is for runs made here; with --sweep QD's curves come from the sweep")
     if args.sweep:
         folders = [spec.partition("=") for spec in args.sweep]
         loaded = [results.load_runs(folder) for folder, _, _ in folders]
