@@ -382,9 +382,9 @@ def main() -> None:
     register_experiment_tasks(args.tasks)
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
-    known = _baselines(args.baseline, args.tasks, args.seeds, args.generations) if args.baseline else {}
-    if known and args.sweep:
+    if args.baseline and args.sweep:
         raise SystemExit("--baseline is for runs made here; with --sweep QD's curves come from the sweep")
+    known = _baselines(args.baseline, args.tasks, args.seeds, args.generations)
     if args.sweep:
         folders = [spec.partition("=") for spec in args.sweep]
         loaded = [results.load_runs(folder) for folder, _, _ in folders]
