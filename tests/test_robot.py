@@ -85,7 +85,7 @@ def test_a_vmapped_run_makes_one_rollout_call_per_generation():
 
 
 @pytest.mark.parametrize("backend", ["mjx", "warp"])
-def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend):
+def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend, optimized_jit):
     # Untouched, and a push along +x 12 mm off the cube's centre line. Measured: equal, and within 1 cm (the
     # contact solvers differ: MJX in float32 with its own collision routines). A push exactly on the centre
     # line is an unstable equilibrium: C MuJoCo keeps its symmetry to 1e-11, MJX's float32 breaks it and
@@ -102,21 +102,21 @@ def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend):
     for name in ("mujoco", backend):
         task = push.make("push_cube", 0.025, backend=name, t_max=50, motion_steps=340, settle=120)
         assert task.physics == name
-        out[name] = [np.asarray(x) for x in jax.jit(task.evaluate)(actions, None)]
+        out[name] = [np.asarray(x) for x in optimized_jit(task.evaluate)(actions, None)]
     (b_c, q_c, v_c), (b_x, q_x, v_x) = out["mujoco"], out[backend]
     assert np.all(v_c) and np.all(v_x)
     assert b_c[1, 0] - kuka.TABLE_CENTRE[0] > 0.05  # the push moved the cube
     np.testing.assert_allclose(b_x, b_c, atol=0.01)
     np.testing.assert_allclose(q_x, q_c, atol=0.01)  # end-effector path lengths, metres
     if backend == "warp":  # vmapped over seeds: one flat batch of worlds, the same rollouts
-        b_s, _, v_s = jax.jit(jax.vmap(lambda a: task.evaluate(a, None)))(jnp.stack([actions, actions[::-1]]))
+        b_s, _, v_s = optimized_jit(jax.vmap(lambda a: task.evaluate(a, None)))(jnp.stack([actions, actions[::-1]]))
         np.testing.assert_allclose(b_s[0], b_x, atol=1e-5)
         np.testing.assert_allclose(b_s[1], b_x[::-1], atol=1e-5)
         assert np.all(v_s)
 
 
 @pytest.mark.parametrize("backend", ["mjx", "warp"])
-def test_the_backends_see_the_arm_touch_the_table_as_c_mujoco_does(backend):
+def test_the_backends_see_the_arm_touch_the_table_as_c_mujoco_does(backend, optimized_jit):
     # A push with its via-points 5 mm below the table's top: the tool presses on the table from its first
     # via-point on, so the rollout is invalid on every backend (the touch sensors are MuJoCo contact sensors
     # per geom pair, which MJX implements; by body or subtree it would not).
@@ -128,9 +128,13 @@ def test_the_backends_see_the_arm_touch_the_table_as_c_mujoco_does(backend):
     touches, valid = {}, {}
     for name in ("mujoco", backend):
         task = push.make("push_cube", -0.005, backend=name, t_max=50, motion_steps=340, settle=20)
-        _, sensors, _ = jax.jit(task.simulate)(task.plan(actions).ctrl, jnp.ones(1, bool))
+
+        def simulated(a, task=task):  # one program: MJX compiles for ~40 s on this CPU
+            return task.simulate(task.plan(a).ctrl, jnp.ones(1, bool))[1], task.evaluate(a, None)[2]
+
+        sensors, ok = optimized_jit(simulated)(actions)
         touches[name] = np.asarray(sensors[0, :, kuka.ARM_TOUCH]).sum(axis=0)  # contact-steps per geom pair
-        valid[name] = bool(jax.jit(task.evaluate)(actions, None)[2][0])
+        valid[name] = bool(ok[0])
     table = kuka.arm_world_pairs(kuka.load("push_cube")).index(("tool", "table"))
     assert touches["mujoco"][table] > 100 and abs(touches[backend][table] - touches["mujoco"][table]) <= 5
     assert valid == {"mujoco": False, backend: False}
