@@ -197,15 +197,6 @@ class MultiScaleIsoLine(IsoLine):
         return jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
 
 
-@dataclasses.dataclass(frozen=True)
-class DiverseSearchingK(Diverse):
-    """`Diverse` that has its model search the K nearest skills though it reads the nearest only: the search of
-    "mqd" before `neighbours_read` (the same rollouts, bit for bit; for timing it in one process)."""
-
-    def neighbours_read(self, k: int) -> int:
-        return k
-
-
 # Cheaper training schedules: half the Adam steps; a quarter of the steps on 4x wider batches.
 _HALF_TRAINING = _replaced(num_batches=250)
 _WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
@@ -225,7 +216,6 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
     **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
-    "mqd-k-nearest-search": lambda cfg: _replaced(acquisition=DiverseSearchingK(cfg.pool_factor, cfg.optimism))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),

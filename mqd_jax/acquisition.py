@@ -20,10 +20,7 @@ many candidates it wants to choose `num` from) and `select`, used by
   of those chosen, so one generation does not spend rollouts on near-duplicates.
 
 Ranking rules return their rows best first (`ModelEmitter`'s fallback keeps a
-prefix of them). A rule may say how many nearest skills of each prediction it
-reads (`neighbours_read(k)`; K when it does not say): `ModelEmitter` searches
-that deep and no deeper, so `Diverse`, which reads the nearest only, does not
-pay for the K-nearest search its novelty would need.
+prefix of them).
 """
 
 from __future__ import annotations
@@ -74,9 +71,9 @@ class Judged:
         single network).
       distance: [N] from b~ to the nearest repertoire skill's behavior (inf if none).
       nearest_quality: [N] that skill's quality (0 if none).
-      novelty: [N] nov~; improvement: [N] qua~ (`predicted_scores`) over the
-        K nearest skills, K the number the rule reads (`neighbours_read`).
-      neighbours: [N, K] distances from b~ to those K nearest skills, ascending
+      novelty: [N] nov~; improvement: [N] qua~ (`predicted_scores`; a rule
+        that does not read them costs nothing: XLA drops unused work).
+      neighbours: [N, K] distances from b~ to its K nearest skills, ascending
         (inf where fewer exist; its first column is `distance`), or None.
     """
 
@@ -117,9 +114,6 @@ class Threshold:
     def pool_size(self, num: int) -> int:
         return num
 
-    def neighbours_read(self, k: int) -> int:
-        return k  # nov~ and qua~
-
     def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept, their rollout mask [num] and how many wanted candidates were turned down."""
@@ -139,9 +133,6 @@ class Budgeted:
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
-
-    def neighbours_read(self, k: int) -> int:
-        return k  # nov~ and qua~
 
     def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -237,10 +228,6 @@ class Diverse:
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
 
-    def neighbours_read(self, k: int) -> int:
-        # The nearest `neighbours`, at most k (more is refused by `greedy_diverse`, as ModelEmitter.k bounds them).
-        return min(self.neighbours, k)
-
     def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
@@ -254,9 +241,6 @@ class Acquisition(Protocol):
 
     def pool_size(self, num: int) -> int:
         """How many candidates the rule chooses `num` from."""
-
-    # Optional: `neighbours_read(k) -> int`, how many of each prediction's nearest skills the rule reads in `Judged`
-    # (given `ModelEmitter.k`); a rule without it gets k.
 
     def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -103,8 +103,7 @@ class ModelEmitter(Emitter):
     Attributes:
       inner: the emitter whose candidates the model judges.
       acquisition: the rule that picks the candidates to roll out.
-      k: the repertoire neighbours the predicted novelty and improvement average over (a rule that reads fewer,
-        `neighbours_read`, gets those: `Diverse` the nearest).
+      k: the repertoire neighbours the predicted novelty and improvement average over.
       hidden_size: the model's hidden units (per member).
       ensemble_size: the members of the model's ensemble.
       batch_size, num_batches: training mini-batches per generation (per member).
@@ -157,10 +156,6 @@ class ModelEmitter(Emitter):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
-        if not (isinstance(self.neighbours_read, int) and not isinstance(self.neighbours_read, bool)
-                and self.neighbours_read >= 1):
-            raise ValueError(f"ModelEmitter: the acquisition rule's neighbours_read({self.k}) is "
-                             f"{self.neighbours_read!r}: expected an int >= 1")
         if self.anchoring == "nearest":
             raise ValueError("ModelEmitter.anchoring='nearest' was split in version 0.6: anchoring='always' "
                              "anchors every prediction, at the skill `anchor` names (anchor='nearest' as before)")
@@ -210,8 +205,7 @@ class ModelEmitter(Emitter):
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
         spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
-        # One search, as deep as the rule reads (Diverse: the nearest; the K-nearest search costs more).
-        sq, slots = repertoire_lib.k_nearest(repertoire, behaviors, self.neighbours_read)
+        sq, slots = repertoire_lib.k_nearest(repertoire, behaviors, self.k)  # one search
         nearest_quality = jnp.where(slots[:, 0] >= 0, repertoire.qualities[jnp.maximum(slots[:, 0], 0)], 0.0)
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
         distances = jnp.sqrt(sq)
@@ -340,13 +334,6 @@ class ModelEmitter(Emitter):
         return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32}),
                 **({} if self.steering is None else {"steered": jnp.int32}),
                 **({} if self._steering_pursuit is None else {"steering_share": jnp.float32})}
-
-    @property
-    def neighbours_read(self) -> int:
-        """How many nearest skills of each prediction `judge` finds: as many as the acquisition rule reads
-        (`neighbours_read(k)`), k if it does not say."""
-        read = getattr(self.acquisition, "neighbours_read", None)
-        return self.k if read is None else read(self.k)
 
     @property
     def _steering_pursuit(self) -> Fallback | None:

@@ -158,42 +158,6 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     np.testing.assert_allclose(empty.behaviors, plain.behaviors)
 
 
-class _ReadsAll:
-    """A user's rule that does not say how many neighbours it reads: it gets ModelEmitter.k."""
-
-    def pool_size(self, num):
-        return num
-
-    def select(self, judged, repertoire, wanted, warm_up, params, num):
-        return jnp.arange(num), wanted, jnp.int32(0)
-
-
-@pytest.mark.parametrize("rule, depth", [(Threshold(), 4), (Budgeted(2), 4), (Diverse(), 1), (Diverse(neighbours=3), 3),
-                                         (_ReadsAll(), 4)])
-def test_the_model_searches_as_many_neighbours_as_its_rule_reads(linear_task, rule, depth):
-    rng = np.random.default_rng(0)
-    rep = repertoire_of(rng.uniform(-1, 1, (6, 2)), rng.uniform(0, 1, 6), capacity=8)
-    pool = jnp.asarray(rng.uniform(-1, 1, (5, 3)), jnp.float32)
-    emitter = _Known(IsoLine(), rule, k=4)
-    assert emitter.neighbours_read == depth
-    got = emitter.judge(None, pool, rep, linear_task)
-    b = np.asarray(pool)[:, :2] + [0.5, -0.5]  # the members' mean
-    d = np.sqrt(((b[:, None] - np.asarray(rep.behaviors[:6])[None]) ** 2).sum(-1))
-    order = np.argsort(d, axis=1)[:, :depth]
-    np.testing.assert_allclose(got.neighbours, np.take_along_axis(d, order, 1), rtol=1e-5)
-    np.testing.assert_allclose(got.distance, d.min(1), rtol=1e-5)  # the same nearest skill, whatever the depth
-    np.testing.assert_allclose(got.nearest_quality, np.asarray(rep.qualities)[d.argmin(1)])
-    np.testing.assert_allclose(got.novelty, np.take_along_axis(d, order, 1).mean(1), rtol=1e-5)
-    improvement = np.asarray(pool)[:, 2, None] - np.asarray(rep.qualities)[order]  # predicted quality: a2
-    np.testing.assert_allclose(got.improvement, improvement.mean(1), rtol=1e-5)
-
-
-def test_a_rule_that_reads_no_neighbours_is_refused():
-    bad = type("Bad", (_ReadsAll,), {"neighbours_read": lambda self, k: 0})()
-    with pytest.raises(ValueError, match="neighbours_read"):
-        ModelEmitter(IsoLine(), bad)
-
-
 def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
