@@ -242,6 +242,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-wide-batches-lr4": _with(_WIDE_BATCHES, learning_rate=4e-3),
     "mqd-half-training-lr2": _with(_HALF_TRAINING, learning_rate=2e-3),
     "mqd-lr2": _with(lambda cfg: "mqd", learning_rate=2e-3),
+    "mqd-pool-16": _with(lambda cfg: "mqd", pool_factor=16),
     "mqd-imagination": _rebuilt(Imagination, fallback=None, generations=3),
     "mqd-imagination-1": _rebuilt(Imagination, fallback=None, generations=1),
     "oracle": _rebuilt(Oracle, anchoring="none", fallback=None, ensemble_size=1, num_batches=1),
