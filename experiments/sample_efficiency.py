@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import Config, Fallback, Imagination, IsoLine, ModelEmitter, Steering, presets, registry, results
+from mqd_jax import Config, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Validity, presets, registry, results
 from mqd_jax.acquisition import Budgeted, Diverse
 from mqd_jax.model_emitter import ModelEmitterState
 from mqd_jax.sweep import run_batch, seed_keys
@@ -243,6 +243,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-half-training-lr2": _with(_HALF_TRAINING, learning_rate=2e-3),
     "mqd-lr2": _with(lambda cfg: "mqd", learning_rate=2e-3),
     "mqd-pool-16": _with(lambda cfg: "mqd", pool_factor=16),
+    "mqd-validity": _replaced(validity=Validity()),
     "mqd-imagination": _rebuilt(Imagination, fallback=None, generations=3),
     "mqd-imagination-1": _rebuilt(Imagination, fallback=None, generations=1),
     "oracle": _rebuilt(Oracle, anchoring="none", fallback=None, ensemble_size=1, num_batches=1),
@@ -263,12 +264,13 @@ def _run(task: str, name: str, seeds: int, generations: int | None) -> dict[str,
 
 
 # The model's diagnostics (README, "Metrics"), averaged over seeds and the generations past warm-up.
-DIAGNOSTICS = ("opener_auc", "model_share", "steered", "steering_share")
+DIAGNOSTICS = ("opener_auc", "model_share", "steered", "steering_share", "validity_auc")
 
 
 def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, Any]:
-    """Mean curves over seeds, each seed's final coverage, and the mean of each model diagnostic the run has over
-    the generations that began with `warmup_samples` rollouts or more (NaN if none)."""
+    """Mean curves over seeds, each seed's final coverage, the share of all rollouts that were invalid, and the mean
+    of each model diagnostic the run has over the generations that began with `warmup_samples` rollouts or more
+    (NaN if none)."""
     evaluations = np.asarray(metrics["num_evaluations"], float)
     trained = np.pad(evaluations[:, :-1], ((0, 0), (1, 0))) >= warmup_samples  # [S, G]
     with warnings.catch_warnings():  # a run that never left warm-up averages to NaN
@@ -278,7 +280,8 @@ def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, An
     return {"rollouts": np.mean(metrics["num_evaluations"], 0).tolist(),
             "coverage": np.mean(metrics["coverage"], 0).tolist(),
             "mean_quality": np.mean(metrics["mean_quality"], 0).tolist(),
-            "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist(), **diagnostics}
+            "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist(),
+            "invalid_share": float(np.sum(metrics["invalid"]) / np.sum(metrics["evaluations"])), **diagnostics}
 
 
 def rollouts_to_reach(rollouts: np.ndarray, coverage: np.ndarray, target: float) -> float | None:
@@ -297,7 +300,8 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
     final = np.asarray(curve["final_coverage"])
     timing = [f"{curve['ms_per_generation']:.1f}", f"{curve['ms_per_generation'] / qd['ms_per_generation']:.2f}"] \
         if timed else ["", ""]
-    diagnostics = [f"{curve[n]:.2f}" if np.isfinite(curve.get(n, np.nan)) else "" for n in DIAGNOSTICS]
+    diagnostics = [f"{curve[n]:.2f}" if np.isfinite(curve.get(n, np.nan)) else ""
+                   for n in ("invalid_share", *DIAGNOSTICS)]
     return [name, to_qd, *at, f"{quality:.3f}", f"{final.mean():.3f} +- {final.std():.3f}",
             f"{curve['rollouts'][-1]:.0f}", *timing, *diagnostics]
 
@@ -426,12 +430,14 @@ def main() -> None:
              "final value). Quality = the repertoire's mean quality after QD's rollouts."
              + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's "
                 "(blank where QD's curve was not run here).")
-             + " Opener AUC, model share, steered, steering share: the model's diagnostics `opener_auc`, "
-             "`model_share`, `steered` (rollouts per generation) and `steering_share` (README, \"Metrics\"; AUC 0.5 = "
-             "chance), averaged over seeds and the generations past warm-up.",
+             + " Invalid: the share of all rollouts that were invalid (blank in files written before it)."
+             " Opener AUC, model share, steered, steering share, validity AUC: the model's diagnostics `opener_auc`, "
+             "`model_share`, `steered` (rollouts per generation), `steering_share` and `validity_auc` (README, "
+             "\"Metrics\"; AUC 0.5 = chance), averaged over seeds and the generations past warm-up.",
              ""]
     header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality", "final coverage",
-              "rollouts", "ms/gen", "x QD", "opener AUC", "model share", "steered", "steering share"]
+              "rollouts", "ms/gen", "x QD", "invalid", "opener AUC", "model share", "steered", "steering share",
+              "validity AUC"]
     for task, by in curves.items():
         lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         # Times are ratios within one invocation: none where QD's curve came from another.

@@ -10,6 +10,7 @@ from mqd_jax.repertoire import AddStatus
 from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
 from mqd_jax.steering import Steering
 from mqd_jax.task import Task
+from mqd_jax.validity import Validity
 
 __all__ = [
            "Adapted",
@@ -31,6 +32,7 @@ __all__ = [
            "Task",
            "Threshold",
            "Uniform",
+           "Validity",
            "adapt",
            "ask",
            "generation",

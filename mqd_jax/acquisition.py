@@ -20,7 +20,12 @@ many candidates it wants to choose `num` from) and `select`, used by
   of those chosen, so one generation does not spend rollouts on near-duplicates.
 
 Ranking rules return their rows best first (`ModelEmitter`'s fallback keeps a
-prefix of them).
+prefix of them). With a validity classifier (`mqd_jax.validity`), the rules
+read its judgement: `Threshold` rolls out none of the candidates it judges
+likely unusable (probability below `PLAUSIBLE`), `Budgeted` and `Diverse`
+rank them after the likely usable ones of their tier (a candidate predicted
+novel still comes before one that is not: it may open a niche, the other
+cannot).
 """
 
 from __future__ import annotations
@@ -39,6 +44,9 @@ from mqd_jax.repertoire import Repertoire
 
 if TYPE_CHECKING:
     from mqd_jax.config import Params
+
+# A candidate whose probability of a usable rollout is below this is judged likely unusable.
+PLAUSIBLE = 0.5
 
 
 def predicted_scores(pred_behaviors: jax.Array, pred_qualities: jax.Array, rep: Repertoire,
@@ -75,6 +83,7 @@ class Judged:
         that does not read them costs nothing: XLA drops unused work).
       neighbours: [N, K] distances from b~ to its K nearest skills, ascending
         (inf where fewer exist; its first column is `distance`), or None.
+      validity: [N] the probability of a usable rollout (`mqd_jax.validity`), or None (all judged usable).
     """
 
     behaviors: jax.Array
@@ -85,6 +94,14 @@ class Judged:
     novelty: jax.Array
     improvement: jax.Array
     neighbours: jax.Array | None = None
+    validity: jax.Array | None = None
+
+    @property
+    def plausible(self) -> jax.Array:
+        """[N] bool: judged likely usable (probability >= `PLAUSIBLE`; all without a validity judgement)."""
+        if self.validity is None:
+            return jnp.ones(self.novelty.shape, bool)
+        return self.validity >= PLAUSIBLE
 
 
 def passes(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, t_qua: jax.Array) -> jax.Array:
@@ -92,24 +109,27 @@ def passes(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, t_qua: 
     return (novelty > t_nov) | (improvement > t_qua)
 
 
-def ranking(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, wanted: jax.Array) -> jax.Array:
+def ranking(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, wanted: jax.Array,
+            plausible: jax.Array | None = None) -> jax.Array:
     """[N] candidate indices, most promising first.
 
     First the `wanted` [N] candidates (those the inner emitter would roll out),
-    among them the ones with nov~ > t_nov by descending nov~, then the rest by
-    descending qua~. Ties go to the higher qua~, then the lower index; NaN
-    scores come last.
+    among them the ones with nov~ > t_nov, then the rest; within each, first
+    the `plausible` [N] ones (judged likely usable; all if None); the novel
+    ones by descending nov~, the rest by descending qua~. Ties go to the
+    higher qua~, then the lower index; NaN scores come last.
     """
     novel = novelty > t_nov
     primary = jnp.where(novel, novelty, improvement)
+    plausible = jnp.ones_like(wanted) if plausible is None else plausible
     # lexsort: the last key is the primary one; ascending, so negate; NaN sorts last.
-    return jnp.lexsort((-improvement, -primary, ~novel, ~wanted)).astype(jnp.int32)
+    return jnp.lexsort((-improvement, -primary, ~plausible, ~novel, ~wanted)).astype(jnp.int32)
 
 
 @dataclasses.dataclass(frozen=True)
 class Threshold:
     """The paper's filter (Algorithm 1): of `num` candidates, roll out those that pass `params.t_nov` or
-    `params.t_qua`; all of them during warm-up."""
+    `params.t_qua` (and are judged likely usable, with a validity classifier); all of them during warm-up."""
 
     def pool_size(self, num: int) -> int:
         return num
@@ -117,7 +137,8 @@ class Threshold:
     def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept, their rollout mask [num] and how many wanted candidates were turned down."""
-        rollout = wanted & (warm_up | passes(judged.novelty, judged.improvement, params.t_nov, params.t_qua))
+        rollout = wanted & (warm_up | (passes(judged.novelty, judged.improvement, params.t_nov, params.t_qua)
+                                       & judged.plausible))
         return jnp.arange(num), rollout, (wanted & ~rollout).sum(dtype=jnp.int32)
 
 
@@ -138,7 +159,7 @@ class Budgeted:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (best first), their rollout mask [num] and how many candidates were turned
         down."""
-        top = ranking(judged.novelty, judged.improvement, params.t_nov, wanted)[:num]
+        top = ranking(judged.novelty, judged.improvement, params.t_nov, wanted, judged.plausible)[:num]
         return _after_warm_up(top, wanted, warm_up, num)
 
 
@@ -168,8 +189,9 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     behaviors (1: the distance to the nearest; more: a novelty, which looks past
     the nearest one to how crowded the predicted behavior's surroundings are,
     needing `judged.neighbours` of at least that many columns, else ValueError); then the rest by
-    the largest predicted quality improvement over that nearest behavior. NaN
-    predictions come last.
+    the largest predicted quality improvement over that nearest behavior. In
+    each of these tiers the candidates judged likely usable (`Judged.plausible`)
+    come first. NaN predictions come last.
     """
     columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
     if neighbours > 1 and columns < neighbours:
@@ -178,6 +200,7 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     b, q = judged.behaviors, judged.qualities
     optimism = beta * judged.spread
     finite = jnp.isfinite(b).all(axis=1) & jnp.isfinite(q) & jnp.isfinite(optimism)
+    plausible = judged.plausible
     near = judged.distance[:, None] if neighbours == 1 else judged.neighbours[:, :neighbours]  # [N, M] ascending
 
     def choose(carry: tuple[jax.Array, jax.Array, jax.Array], _: None) -> tuple[tuple[jax.Array, ...], jax.Array]:
@@ -187,7 +210,8 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         count = known.sum(axis=1)
         mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
         value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, mean + optimism, q - nearest_quality)), -jnp.inf)
-        tier = jnp.where(free, 2 * wanted.astype(jnp.int32) + opens.astype(jnp.int32), -1)
+        tier = jnp.where(free, 4 * wanted.astype(jnp.int32) + 2 * opens.astype(jnp.int32)
+                         + plausible.astype(jnp.int32), -1)
         best = tier == tier.max()
         pick = jnp.argmax(jnp.where(best, value, -jnp.inf))
         pick = jnp.where(best[pick], pick, jnp.argmax(best)).astype(jnp.int32)  # all of the tier at -inf: the first

@@ -64,6 +64,9 @@ class Imagination(ModelEmitter):
         if self.steering is not None:
             raise ValueError(f"Imagination.steering={self.steering!r} is invalid: expected None (imagined "
                              "generations draw their own pools)")
+        if self.validity is not None:
+            raise ValueError(f"Imagination.validity={self.validity!r} is invalid: expected None (no acquisition "
+                             "rule reads it: what the imagined generations add is rolled out)")
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:

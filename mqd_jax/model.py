@@ -71,9 +71,10 @@ def network(hidden_size: int, task: Task) -> MLP:
     return MLP(hidden_size=hidden_size, out_size=task.behavior_dim + 1)
 
 
-def _network_of(model: ModelState, task: Task) -> MLP:
-    """The network `model`'s parameters belong to (its hidden size read from their shapes)."""
-    return network(model.params["params"]["Dense_0"]["bias"].shape[-1], task)
+def _network_of(model: ModelState) -> MLP:
+    """The network `model`'s parameters belong to (its sizes read from their shapes)."""
+    layers = model.params["params"]
+    return MLP(hidden_size=layers["Dense_0"]["bias"].shape[-1], out_size=layers["Dense_1"]["bias"].shape[-1])
 
 
 def _bounds(task: Task) -> tuple[jax.Array, jax.Array]:
@@ -99,10 +100,13 @@ def normalize_targets(behaviors: jax.Array, qualities: jax.Array, task: Task) ->
     return _to_unit(jnp.concatenate([behaviors, qualities[..., None]], axis=-1), *_bounds(task))
 
 
-def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1) -> ModelState:
+def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1,
+         out_size: int | None = None) -> ModelState:
     """Random parameters of `ensemble_size` members (Flax's default initialisers, one key each) and a fresh Adam
-    state. A single member is initialised from `key` itself."""
-    net, x = network(hidden_size, task), jnp.zeros((1, task.action_dim), jnp.float32)
+    state. A single member is initialised from `key` itself. `out_size`: the outputs, d + 1 (phi) unless given
+    (a network of the same kind that predicts something else, as `mqd_jax.validity`'s classifier)."""
+    net = network(hidden_size, task) if out_size is None else MLP(hidden_size=hidden_size, out_size=out_size)
+    x = jnp.zeros((1, task.action_dim), jnp.float32)
     keys = key[None] if ensemble_size == 1 else jax.random.split(key, ensemble_size)
     params = jax.vmap(lambda k: net.init(k, x))(keys)
     return ModelState(params=params, opt_state=_OPTIMIZER.init(params), steps=jnp.int32(0))
@@ -115,10 +119,15 @@ def ensemble_size(model: ModelState) -> int:
 
 def predict_members(model: ModelState, actions: jax.Array, task: Task) -> jax.Array:
     """Each member's phi in real units: actions [..., n] -> [E, ..., d + 1] (behavior, then quality)."""
-    net, x = _network_of(model, task), normalize_actions(actions, task)
-    y = jax.vmap(lambda p: net.apply(p, x))(model.params)
+    y = apply_members(model, normalize_actions(actions, task))
     low, high = _bounds(task)
     return low + (y + 1.0) * (high - low) / 2.0
+
+
+def apply_members(model: ModelState, inputs: jax.Array) -> jax.Array:
+    """Each member's raw outputs in [-1, 1]: inputs [..., n] (normalized) -> [E, ..., out]."""
+    net = _network_of(model)
+    return jax.vmap(lambda p: net.apply(p, inputs))(model.params)
 
 
 def predict(model: ModelState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
@@ -136,11 +145,19 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     hold at least one row. Returns the new state and the mean loss over the
     steps and members.
     """
-    net = _network_of(model, task)
     filled = data.count if isinstance(data, Repertoire) else jnp.minimum(data.total, data.qualities.shape[0])
+    return fit(model, key, normalize_actions(data.actions, task),
+               normalize_targets(data.behaviors, data.qualities, task), filled, learning_rate, batch_size,
+               num_batches)
+
+
+def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,
+        learning_rate: jax.Array, batch_size: int, num_batches: int) -> tuple[ModelState, jax.Array]:
+    """`train`'s steps on normalized inputs [R, n] and targets [R, out] whose first `filled` (>= 1) rows are data:
+    mean-squared error, each member's rows drawn uniformly with replacement. Returns the new state and the mean
+    loss over the steps and members."""
+    net = _network_of(model)
     rows = jax.random.randint(key, (num_batches, ensemble_size(model), batch_size), 0, filled)
-    inputs = normalize_actions(data.actions, task)
-    targets = normalize_targets(data.behaviors, data.qualities, task)
 
     def loss_fn(params: Any, idx: jax.Array) -> jax.Array:
         # Summed over members: each member's gradient is that of its own mean-squared error.

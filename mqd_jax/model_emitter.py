@@ -35,7 +35,9 @@ Two options change what the model says and how much it is trusted:
 
 And one changes what the model is asked about: `steering` (`steering.Steering`)
 replaces the last rows of the inner emitter's pool with children the model's
-Jacobian aims at empty behavior space. The inner emitter's `update` then sees
+Jacobian aims at empty behavior space. And `validity` (`validity.Validity`)
+adds a classifier of usable rollouts, whose judgement every acquisition rule
+reads: candidates likely to be invalid come after the others. The inner emitter's `update` then sees
 its proposal with those rows' actions replaced (IsoLine and Uniform keep no
 per-candidate state); the fallback's rows are always the inner emitter's own.
 """
@@ -53,6 +55,7 @@ from mqd_jax import acquisition, model
 from mqd_jax import archive as archive_lib
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax import steering as steering_lib
+from mqd_jax import validity as validity_lib
 from mqd_jax.emitters import Emitter, Evaluated, Proposal
 from mqd_jax.pursuit import Fallback, running_average
 from mqd_jax.repertoire import AddStatus, Repertoire
@@ -85,6 +88,7 @@ class ModelEmitterState:
       anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
         plain and the anchored predictions (NaN before the first); else ().
       steering: `pursuit.FallbackState` of a steering pursuit, or ().
+      validity: `validity.ValidityState`, or () without a validity classifier.
     """
 
     model: model.ModelState
@@ -94,6 +98,7 @@ class ModelEmitterState:
     fallback: Any = ()
     anchor_errors: Any = ()
     steering: Any = ()
+    validity: Any = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,6 +124,7 @@ class ModelEmitter(Emitter):
         Only with a ranking rule (`Budgeted`, `Diverse`), whose best rows come first.
       steering: a `steering.Steering`, or None for the inner emitter's pool alone. Only with a ranking rule
         whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up.
+      validity: a `validity.Validity` classifier of usable rollouts that the rule consults, or None.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -130,7 +136,9 @@ class ModelEmitter(Emitter):
     both kinds), with a
     fallback `model_share` (the share of the generation's rows from the rule: 1 during warm-up),
     with steering `steered` (the generation's rollouts that were steered children) and, with its pursuit,
-    `steering_share` (the pursuit's share of the steerable rows this generation), and the inner emitter's.
+    `steering_share` (the pursuit's share of the steerable rows this generation), with validity
+    `validity_auc` (among this generation's rollouts, the probability that a usable one had a higher predicted
+    probability of being usable than an unusable one; ties 1/2; NaN without both), and the inner emitter's.
     """
 
     inner: Emitter
@@ -147,6 +155,7 @@ class ModelEmitter(Emitter):
     rollout_buffer: int = 4096
     fallback: Fallback | None = None
     steering: steering_lib.Steering | None = None
+    validity: validity_lib.Validity | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.inner, Emitter):
@@ -174,6 +183,8 @@ class ModelEmitter(Emitter):
                                               and not isinstance(self.acquisition, acquisition.Threshold)):
             raise ValueError(f"ModelEmitter.steering={self.steering!r} is invalid: expected None, or a Steering "
                              "with a ranking acquisition rule (Threshold would roll out every steered child)")
+        if self.validity is not None and not isinstance(self.validity, validity_lib.Validity):
+            raise ValueError(f"ModelEmitter.validity={self.validity!r} is invalid: expected None or a Validity")
         clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
@@ -185,7 +196,9 @@ class ModelEmitter(Emitter):
                                  inner=self.inner.init(jax.random.fold_in(key, 1), task), evaluations=jnp.int32(0),
                                  rollouts=rollouts, fallback=() if self.fallback is None else self.fallback.init(),
                                  anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else (),
-                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init())
+                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init(),
+                                 validity=() if self.validity is None else self.validity.init(
+                                     jax.random.fold_in(key, 3), task))
 
     def members(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> jax.Array:
         """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n]. A subclass may
@@ -196,11 +209,12 @@ class ModelEmitter(Emitter):
               parents: jax.Array | None = None) -> acquisition.Judged:
         """The model's view of actions [N, n] (with their parents' slots [N], or None) against the repertoire
         (anchored as `anchoring` and `anchor` say)."""
-        return self._judged(state, *self.predictions(state, actions, repertoire, task, parents), repertoire)
+        return self._judged(state, *self.predictions(state, actions, repertoire, task, parents), repertoire,
+                            actions, task)
 
     def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
-                repertoire: Repertoire) -> acquisition.Judged:
-        """`Judged` from the members' plain and anchored predictions [E, N, d + 1]."""
+                repertoire: Repertoire, actions: jax.Array, task: Task) -> acquisition.Judged:
+        """`Judged` from the members' plain and anchored predictions [E, N, d + 1] of actions [N, n]."""
         y = self.chosen(state, plain, anchored)
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
@@ -209,8 +223,9 @@ class ModelEmitter(Emitter):
         nearest_quality = jnp.where(slots[:, 0] >= 0, repertoire.qualities[jnp.maximum(slots[:, 0], 0)], 0.0)
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
         distances = jnp.sqrt(sq)
+        validity = None if self.validity is None else self.validity.probability(state.validity, actions, task)
         return acquisition.Judged(behaviors, qualities, spread, distances[:, 0], nearest_quality, novelty,
-                                  improvement, distances)
+                                  improvement, distances, validity)
 
     def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
         """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
@@ -249,7 +264,7 @@ class ModelEmitter(Emitter):
             pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
                                           warm_up)
         plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
-        judged = self._judged(state, plain, anchored, repertoire)
+        judged = self._judged(state, plain, anchored, repertoire, pool.actions, task)
         rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)
         from_model = jnp.ones(num, bool)
         if self.fallback is not None:
@@ -259,6 +274,8 @@ class ModelEmitter(Emitter):
                 "predicted_distance": judged.distance[rows], "from_model": from_model, "discarded": discarded}
         if self.steering is not None:
             info["steered"] = steered[rows] & rollout
+        if self.validity is not None:
+            info["validity"] = judged.validity[rows]
         if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
             info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
         return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows])
@@ -315,6 +332,12 @@ class ModelEmitter(Emitter):
             fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
                                     lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
                                                                  evaluated))
+        validity = state.validity
+        if self.validity is not None:
+            metrics["validity_auc"] = auc(proposal.info["validity"], proposal.rollout & evaluated.usable,
+                                          proposal.rollout & ~evaluated.usable)
+            validity = self.validity.update(jax.random.fold_in(key, 3), state.validity, proposal.actions,
+                                            proposal.rollout, evaluated.usable, task, params.learning_rate)
         steering = state.steering
         if self.steering is not None:
             metrics["steered"] = proposal.info["steered"].sum(dtype=jnp.int32)
@@ -328,12 +351,14 @@ class ModelEmitter(Emitter):
             errors = jax.vmap(_prediction_error, in_axes=(0, None))(proposal.info["both_behaviors"], evaluated)
             anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
         return ModelEmitterState(model=trained, inner=inner, evaluations=evaluations, rollouts=rollouts,
-                                 fallback=fallback, anchor_errors=anchor_errors, steering=steering), metrics
+                                 fallback=fallback, anchor_errors=anchor_errors, steering=steering,
+                                 validity=validity), metrics
 
     def _own_metrics(self) -> dict[str, Any]:
         return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32}),
                 **({} if self.steering is None else {"steered": jnp.int32}),
-                **({} if self._steering_pursuit is None else {"steering_share": jnp.float32})}
+                **({} if self._steering_pursuit is None else {"steering_share": jnp.float32}),
+                **({} if self.validity is None else {"validity_auc": jnp.float32})}
 
     @property
     def _steering_pursuit(self) -> Fallback | None:
@@ -368,10 +393,15 @@ def opener_auc(score: jax.Array, evaluated: Evaluated) -> jax.Array:
     score [P] (the model's: its predicted distance to the nearest skill); `evaluated` of the same P rows. NaN
     scores count as the lowest.
     """
-    score = jnp.nan_to_num(score, nan=-jnp.inf)
     opened = evaluated.usable & (evaluated.status == AddStatus.ADDED)
-    closed = evaluated.usable & ~opened
-    pairs = opened[:, None] & closed[None, :]
+    return auc(score, opened, evaluated.usable & ~opened)
+
+
+def auc(score: jax.Array, positive: jax.Array, negative: jax.Array) -> jax.Array:
+    """P(score of a positive row > score of a negative one) over score [P] and the masks [P], ties 1/2; NaN
+    without both kinds. NaN scores count as the lowest."""
+    score = jnp.nan_to_num(score, nan=-jnp.inf)
+    pairs = positive[:, None] & negative[None, :]
     wins = jnp.where(score[:, None] > score[None, :], 1.0, jnp.where(score[:, None] == score[None, :], 0.5, 0.0))
     n = pairs.sum()
     return jnp.where(n > 0, jnp.where(pairs, wins, 0.0).sum() / jnp.maximum(n, 1), jnp.nan)

@@ -29,7 +29,7 @@ def repertoire_of(behaviors, qualities, actions=None, capacity=8):
                        count=jnp.int32(n))
 
 
-def judged(behaviors, qualities, rep, spread=None, k=5):
+def judged(behaviors, qualities, rep, spread=None, k=5, validity=None):
     """A Judged pool whose distances to the nearest skill and to the k nearest are computed by brute force."""
     b = np.asarray(behaviors, np.float32)
     n = b.shape[0]
@@ -38,12 +38,13 @@ def judged(behaviors, qualities, rep, spread=None, k=5):
     near = np.pad(np.sort(d, axis=1), ((0, 0), (0, max(k - d.shape[1], 0))), constant_values=np.inf)[:, :k]
     return Judged(jnp.asarray(b), jnp.asarray(qualities, jnp.float32), jnp.zeros(n) if spread is None else
                   jnp.asarray(spread), jnp.asarray(d.min(1)), jnp.asarray(rep.qualities)[d.argmin(1)], jnp.zeros(n),
-                  jnp.zeros(n), jnp.asarray(near))
+                  jnp.zeros(n), jnp.asarray(near), None if validity is None else jnp.asarray(validity, jnp.float32))
 
 
-def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours):
+def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours, plausible=None):
     """greedy_diverse written out: each step scores every free candidate against the repertoire's skills and the
     wanted candidates chosen so far."""
+    plausible = np.ones(len(b), bool) if plausible is None else plausible
     imagined_b, imagined_q = list(skills), list(skill_qualities)
     free, rows = np.ones(len(b), bool), []
     for _ in range(num):
@@ -53,7 +54,7 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
             near = np.sort(d)[:neighbours]
             opens = near[0] + beta * spread[i] > t_dist
             value = near.mean() + beta * spread[i] if opens else q[i] - imagined_q[int(np.argmin(d))]
-            rank = (2 * wanted[i] + opens, value)
+            rank = (bool(wanted[i]), bool(opens), bool(plausible[i]), value)
             if best is None or rank > best[0]:
                 best = (rank, i)
         pick = best[1]
@@ -65,10 +66,12 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
     return rows
 
 
-@pytest.mark.parametrize("neighbours, skills", [(1, 6), (3, 6), (3, 2)])
-def test_greedy_diverse_matches_a_reference(neighbours, skills):
+@pytest.mark.parametrize("neighbours, skills, judge_validity", [(1, 6, False), (3, 6, False), (3, 2, False),
+                                                                (1, 6, True)])
+def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity):
     """Random pools: the scan's choice equals the rule written out, for the nearest distance and for the mean of
-    the 3 nearest (also with fewer skills than that: the mean over those there are)."""
+    the 3 nearest (also with fewer skills than that: the mean over those there are), and with a validity
+    judgement (likely unusable candidates after the others of their tier)."""
     key = jax.random.split(jax.random.PRNGKey(neighbours + skills), 4)
     rep = repertoire_of(np.asarray(jax.random.uniform(key[0], (skills, 2))),
                         np.asarray(jax.random.uniform(key[1], (skills,))))
@@ -76,10 +79,11 @@ def test_greedy_diverse_matches_a_reference(neighbours, skills):
     q = np.asarray(jax.random.uniform(key[3], (30,)))
     spread = np.linspace(0.0, 0.05, 30).astype(np.float32)
     wanted = np.arange(30) % 4 != 0
-    pool = judged(b, q, rep, spread, k=5)
+    validity = np.asarray(jax.random.uniform(jax.random.PRNGKey(7), (30,))) if judge_validity else None
+    pool = judged(b, q, rep, spread, k=5, validity=validity)
     rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours)
     expected = greedy_reference(b, q, spread, np.asarray(rep.behaviors[:skills]), np.asarray(rep.qualities[:skills]),
-                                wanted, 0.1, 0.5, 12, neighbours)
+                                wanted, 0.1, 0.5, 12, neighbours, None if validity is None else validity >= 0.5)
     np.testing.assert_array_equal(rows, expected)
 
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Diverse, Fallback, Imagination, IsoLine, run_mqd
+from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Validity, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.imagination import survivors
 from mqd_jax.repertoire import Repertoire
@@ -80,7 +80,8 @@ def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_
 
 @pytest.mark.parametrize("kw, field", [({"generations": 0}, "generations"),
                                        ({"generations": 2.0}, "generations"),
-                                       ({"fallback": Fallback(), "acquisition": Diverse()}, "fallback")])
+                                       ({"fallback": Fallback(), "acquisition": Diverse()}, "fallback"),
+                                       ({"validity": Validity(), "acquisition": Diverse()}, "validity")])
 def test_imagination_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Imagination.{field}="):
         Imagination(IsoLine(), **kw)
