@@ -281,7 +281,8 @@ def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, An
             "coverage": np.mean(metrics["coverage"], 0).tolist(),
             "mean_quality": np.mean(metrics["mean_quality"], 0).tolist(),
             "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist(),
-            "invalid_share": float(np.sum(metrics["invalid"]) / np.sum(metrics["evaluations"])), **diagnostics}
+            "invalid_share": float(np.sum(metrics["invalid"]) / np.sum(metrics["evaluations"]))
+            if "invalid" in metrics else float("nan"), **diagnostics}
 
 
 def rollouts_to_reach(rollouts: np.ndarray, coverage: np.ndarray, target: float) -> float | None:
