@@ -35,11 +35,13 @@ Two options change what the model says and how much it is trusted:
 
 And one changes what the model is asked about: `steering` (`steering.Steering`)
 replaces the last rows of the inner emitter's pool with children the model's
-Jacobian aims at empty behavior space. And `validity` (`validity.Validity`)
-adds a classifier of usable rollouts, whose judgement every acquisition rule
-reads: candidates likely to be invalid come after the others. The inner emitter's `update` then sees
+Jacobian aims at empty behavior space. The inner emitter's `update` then sees
 its proposal with those rows' actions replaced (IsoLine and Uniform keep no
 per-candidate state); the fallback's rows are always the inner emitter's own.
+
+And `validity` (`validity.Validity`) adds a classifier of usable rollouts,
+whose judgement the acquisition rules read: candidates judged likely invalid
+come after the others.
 """
 
 from __future__ import annotations
