@@ -11,7 +11,7 @@ unusable (measured on Place: 42% of `"mqd"`'s rollouts; docs/results.md).
 whether each was usable, fits a network of the forward model's kind (one
 hidden layer, tanh output; `mqd_jax.model.fit`) to +1 (usable) and -1
 (unusable) by mean-squared error, and judges a candidate's probability of a
-usable rollout as (output + 1) / 2, clipped to [0, 1] (the squared error of a
+usable rollout as (output + 1) / 2, in [0, 1] (the squared error of a
 probability is the Brier score, a proper scoring rule, so the fit estimates
 that probability). Until the buffer has held an unusable rollout it neither
 trains nor judges: every candidate's probability is exactly 1, so on a task
@@ -76,7 +76,7 @@ class Validity:
     def probability(self, state: ValidityState, actions: jax.Array, task: Task) -> jax.Array:
         """[N] the probability that each of actions [N, n] gives a usable rollout (1 before any unusable one)."""
         output = model.apply_members(state.model, model.normalize_actions(actions, task))[0, :, 0]
-        return jnp.where(state.unusable > 0, jnp.clip((output + 1.0) / 2.0, 0.0, 1.0), 1.0)
+        return jnp.where(state.unusable > 0, (output + 1.0) / 2.0, 1.0)
 
     def update(self, key: jax.Array, state: ValidityState, actions: jax.Array, rolled_out: jax.Array,
                usable: jax.Array, task: Task, learning_rate: jax.Array) -> ValidityState:
