@@ -17,7 +17,11 @@ Signals: the run's model (plain and anchored predictions, as `ModelEmitter.predi
 by the distance to the nearest skill (what `Diverse` ranks by) or by a smoothed novelty (mean
 distance to the 5 nearest skills; minus the number of skills within 0.1); the parent's
 novelty (the repertoire's, by which IsoLine draws parents); networks trained afresh for 2000
-Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts. And
+Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts; and a
+classifier of openers (a network of 64 units fitted for 3000 steps of 64 rows to +1 for an
+opener and -1 for the rest) trained on the seed's other pools, every child of which was rolled
+out, and scored on the held-out pool: what a model of the action alone can learn of "would open
+a niche" from more labelled rollouts of the same repertoire than a run ever has. And
 the task's ruggedness: quartiles of the distance between a child's behavior and its first
 parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
 sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
@@ -62,6 +66,22 @@ def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: Task, k
     return jax.jit(lambda s: model.train(s, jax.random.fold_in(key, 1), data, task, 1e-3, 16, 2000))(state)[0]
 
 
+def _rated(score: np.ndarray, opener: np.ndarray) -> tuple[float, float]:
+    """(AUC, precision@100) of scores [N] against the openers [N]."""
+    top = np.argsort(-score, kind="stable")[:CHOSEN]
+    return auc(score, opener), float(opener[top].mean())
+
+
+def _classifier(labelled: list[tuple[jax.Array, np.ndarray]], task: Task, key: jax.Array) -> model.ModelState:
+    """A network of 64 units fitted for 3000 steps of 64 rows to +1 (opener) / -1 on [(normalized actions [N, n],
+    openers [N])], at least one pool."""
+    inputs = jnp.concatenate([x for x, _ in labelled])
+    targets = jnp.concatenate([jnp.where(o, 1.0, -1.0) for _, o in labelled])[:, None]
+    fit = jax.jit(lambda s: model.fit(s, jax.random.fold_in(key, 2), inputs, targets, jnp.int32(inputs.shape[0]),
+                                      1e-3, 64, 3000))
+    return fit(model.init(key, 64, task, out_size=1))[0]
+
+
 def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
     number of skills."""
@@ -78,7 +98,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
     fresh = {f"fresh {h} units, {name}": _fresh(data, h, task, key)
              for h in (32, 256) for name, data in (("repertoire", rep), ("repertoire + archive", both))}
     out: dict[str, list] = {}
-    distances, openers = [], []
+    distances, openers, labelled = [], [], []
     for p in range(pools):
         k = jax.random.fold_in(key, p)
         pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params, POOL)
@@ -99,9 +119,12 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
                    for name, m in fresh.items()}
         scored["parent's novelty"] = np.asarray(rep.novelty)[parents]
         scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
+        labelled.append((model.normalize_actions(pool.actions, task), opener))
         for name, score in scored.items():
-            top = np.argsort(-score, kind="stable")[:CHOSEN]
-            out.setdefault(name, []).append((auc(score, opener), float(opener[top].mean())))
+            out.setdefault(name, []).append(_rated(score, opener))
+    for p, (inputs, opener) in enumerate(labelled if pools > 1 else []):  # one pool has no other to learn from
+        score = np.asarray(model.apply_members(_classifier(labelled[:p] + labelled[p + 1:], task, key), inputs))
+        out.setdefault("classifier of openers, other pools", []).append(_rated(score[0, :, 0], opener))
     quantiles = np.quantile(np.concatenate(distances), [0.25, 0.5, 0.75])
     return out, {"base rate": float(np.mean(openers)), **{f"q{q}": v for q, v in zip((25, 50, 75), quantiles,
                                                                                          strict=True)}, "skills": n}

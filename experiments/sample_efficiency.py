@@ -211,18 +211,22 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-no-fallback": _replaced(fallback=None),
     "mqd-not-anchored": _replaced(anchoring="none"),
     "mqd-always-anchored": _replaced(anchoring="always"),
-    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest"),  # "mqd" of version 0.5
+    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest", parent_weight=0.0),  # "mqd" of version 0.5
     "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
     "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
     **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
+    # "mqd" since version 0.7; "mqd-distance-ranked" is 0.6's.
+    "mqd-parent-novelty": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism,
+                                                                    parent_weight=1.0))(cfg),
+    "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),
     # "mqd" since version 0.5 (anchored at the parent since 0.6, as every composition built on the preset).
     "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
     **{f"mqd-quality-{q:g}": _replaced(steering=Steering(share=0.25, quality=q)) for q in (0.5, 1.0, 2.0)},
-    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest"),  # "mqd" of version 0.4
+    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest", parent_weight=0.0),  # 0.4's
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
     "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),

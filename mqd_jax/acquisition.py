@@ -84,6 +84,8 @@ class Judged:
       neighbours: [N, K] distances from b~ to its K nearest skills, ascending
         (inf where fewer exist; its first column is `distance`), or None.
       validity: [N] the probability of a usable rollout (`mqd_jax.validity`), or None (all judged usable).
+      parent_novelty: [N] the repertoire's novelty of each candidate's parent (the skill it was varied from; NaN
+        for a candidate without one), or None where the inner emitter names no parents.
     """
 
     behaviors: jax.Array
@@ -95,6 +97,7 @@ class Judged:
     improvement: jax.Array
     neighbours: jax.Array | None = None
     validity: jax.Array | None = None
+    parent_novelty: jax.Array | None = None
 
     @property
     def plausible(self) -> jax.Array:
@@ -177,8 +180,19 @@ def _check_pool_factor(rule: object) -> None:
         raise ValueError(f"{type(rule).__name__}.pool_factor={value!r} is invalid: expected an int >= 1")
 
 
+def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
+    """[N] (parent's novelty / the pool's mean parent novelty) ** weight: 1 for a candidate without a parent, and
+    for all where `weight` is 0, the pool names no parents or their mean novelty is not positive."""
+    if weight == 0 or judged.parent_novelty is None:
+        return 1.0
+    novelty = judged.parent_novelty
+    mean = jnp.nanmean(novelty)
+    relative = jnp.where(jnp.isnan(novelty) | ~(mean > 0), 1.0, novelty / jnp.where(mean > 0, mean, 1.0))
+    return relative ** weight
+
+
 def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,
-                   neighbours: int = 1) -> jax.Array:
+                   neighbours: int = 1, parent_weight: float = 0.0) -> jax.Array:
     """[num] pool rows chosen one at a time against an imagined repertoire; the first chosen first.
 
     Each step takes, among the candidates not yet chosen, first those the
@@ -202,6 +216,7 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     finite = jnp.isfinite(b).all(axis=1) & jnp.isfinite(q) & jnp.isfinite(optimism)
     plausible = judged.plausible
     near = judged.distance[:, None] if neighbours == 1 else judged.neighbours[:, :neighbours]  # [N, M] ascending
+    factor = parent_factor(judged, parent_weight)
 
     def choose(carry: tuple[jax.Array, jax.Array, jax.Array], _: None) -> tuple[tuple[jax.Array, ...], jax.Array]:
         near, nearest_quality, free = carry
@@ -209,7 +224,8 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         known = jnp.isfinite(near)
         count = known.sum(axis=1)
         mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
-        value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, mean + optimism, q - nearest_quality)), -jnp.inf)
+        value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, (mean + optimism) * factor, q - nearest_quality)),
+                          -jnp.inf)
         tier = jnp.where(free, 4 * wanted.astype(jnp.int32) + 2 * opens.astype(jnp.int32)
                          + plausible.astype(jnp.int32), -1)
         best = tier == tier.max()
@@ -234,12 +250,13 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
 class Diverse:
     """Batch-diverse optimistic ranking: of `pool_factor` x num candidates, roll out num chosen one at a time
     (`greedy_diverse`, optimism `beta` x the ensemble's spread, ranked by the mean distance to the `neighbours`
-    nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`); during warm-up the pool's first
-    num."""
+    nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`; times the parent's relative
+    novelty to the power `parent_weight`: 0, not read); during warm-up the pool's first num."""
 
     pool_factor: int = 8
     beta: float = 1.0
     neighbours: int = 1
+    parent_weight: float = 0.0
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
@@ -248,6 +265,9 @@ class Diverse:
             raise ValueError(f"Diverse.beta={self.beta!r} is invalid: expected a finite float >= 0")
         if not (isinstance(self.neighbours, int) and not isinstance(self.neighbours, bool) and self.neighbours >= 1):
             raise ValueError(f"Diverse.neighbours={self.neighbours!r} is invalid: expected an int >= 1")
+        if not (isinstance(self.parent_weight, (int, float)) and not isinstance(self.parent_weight, bool)
+                and self.parent_weight >= 0 and math.isfinite(self.parent_weight)):
+            raise ValueError(f"Diverse.parent_weight={self.parent_weight!r} is invalid: expected a finite float >= 0")
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
@@ -256,7 +276,7 @@ class Diverse:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
-        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours)
+        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight)
         return _after_warm_up(top, wanted, warm_up, num)
 
 

@@ -105,7 +105,7 @@ class Config:
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
     model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor; "mqd-paper":
+    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight; "mqd-paper":
     t_nov, t_qua, budgeted) configure the model presets; a composed emitter carries its own
     settings.
     """
@@ -152,6 +152,9 @@ class Config:
     # "mqd": where the model's predictions are anchored (ModelEmitter.anchor): "parent", the skill a
     # candidate was varied from, or "nearest", the nearest skill in action space (a search; version 0.5's).
     anchor: str = "parent"
+    # "mqd": the exponent of a predicted opener's parent's relative novelty in its rank (acquisition.Diverse's
+    # parent_weight; 0 = the predicted distance alone, version 0.6's "mqd").
+    parent_weight: float = 1.0
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate
     # exactly `population_size` of them (see acquisition.Budgeted).
@@ -179,7 +182,7 @@ class Config:
         for name in ("t_dist", "learning_rate", "adaptation_step_size"):
             v = getattr(self, name)
             _check(_is_real(v) and v > 0, name, v, "a finite float > 0")
-        for name in ("t_nov", "iso_sigma", "line_sigma", "optimism"):
+        for name in ("t_nov", "iso_sigma", "line_sigma", "optimism", "parent_weight"):
             v = getattr(self, name)
             _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
         _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
@@ -280,7 +283,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     version 0.2 a robot task's backend is an option of its construction, `task_options`); before version 0.3
     (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
     defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer; before version
-    0.6 (configs without `anchor`) it anchored at the nearest skill."""
+    0.6 (configs without `anchor`) it anchored at the nearest skill; before version 0.7 (configs without
+    `parent_weight`) it ranked predicted openers by their distance alone."""
     saved = dict(saved)
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
@@ -292,6 +296,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
         saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.steering_share
     if "anchor" not in saved:  # before version 0.6 "mqd" anchored at the nearest skill
         saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else Config.anchor
+    if "parent_weight" not in saved:  # before version 0.7 "mqd" ranked by the predicted distance alone
+        saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else Config.parent_weight
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}

@@ -212,11 +212,13 @@ class ModelEmitter(Emitter):
         """The model's view of actions [N, n] (with their parents' slots [N], or None) against the repertoire
         (anchored as `anchoring` and `anchor` say)."""
         return self._judged(state, *self.predictions(state, actions, repertoire, task, parents), repertoire,
-                            actions, task)
+                            actions, task, parents)
 
     def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
-                repertoire: Repertoire, actions: jax.Array, task: Task) -> acquisition.Judged:
-        """`Judged` from the members' plain and anchored predictions [E, N, d + 1] of actions [N, n]."""
+                repertoire: Repertoire, actions: jax.Array, task: Task,
+                parents: jax.Array | None) -> acquisition.Judged:
+        """`Judged` from the members' plain and anchored predictions [E, N, d + 1] of actions [N, n] and their
+        parents' slots [N] (-1: none) or None."""
         y = self.chosen(state, plain, anchored)
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
@@ -226,8 +228,10 @@ class ModelEmitter(Emitter):
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
         distances = jnp.sqrt(sq)
         validity = None if self.validity is None else self.validity.probability(state.validity, actions, task)
+        parent_novelty = None if parents is None else jnp.where(
+            parents >= 0, repertoire.novelty[jnp.maximum(parents, 0)], jnp.nan)
         return acquisition.Judged(behaviors, qualities, spread, distances[:, 0], nearest_quality, novelty,
-                                  improvement, distances, validity)
+                                  improvement, distances, validity, parent_novelty)
 
     def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
         """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
@@ -266,7 +270,7 @@ class ModelEmitter(Emitter):
             pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
                                           warm_up)
         plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
-        judged = self._judged(state, plain, anchored, repertoire, pool.actions, task)
+        judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
         rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)
         from_model = jnp.ones(num, bool)
         if self.fallback is not None:

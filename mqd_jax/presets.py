@@ -2,7 +2,8 @@
 
     "random"    -> Uniform()
     "qd"        -> IsoLine()
-    "mqd"       -> ModelEmitter(IsoLine(), Diverse(pool_factor, optimism), ensemble_size members,
+    "mqd"       -> ModelEmitter(IsoLine(), Diverse(pool_factor, optimism, parent_weight=parent_weight),
+                                ensemble_size members,
                                 anchoring="auto", anchor=anchor, fallback=Fallback(),
                                 steering=Steering(share=steering_share))    (this library's M-QD)
     "mqd-paper" -> ModelEmitter(IsoLine(), Threshold())                      (the paper's filter)
@@ -27,8 +28,9 @@ from mqd_jax.steering import Steering
 
 
 def _mqd(cfg: Config) -> ModelEmitter:
-    return ModelEmitter(IsoLine(), Diverse(cfg.pool_factor, cfg.optimism), k=cfg.k, hidden_size=cfg.hidden_size,
-                        ensemble_size=cfg.ensemble_size, batch_size=cfg.batch_size, num_batches=cfg.num_batches,
+    return ModelEmitter(IsoLine(), Diverse(cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight), k=cfg.k,
+                        hidden_size=cfg.hidden_size, ensemble_size=cfg.ensemble_size, batch_size=cfg.batch_size,
+                        num_batches=cfg.num_batches,
                         warmup_samples=cfg.warmup_samples, anchoring="auto", anchor=cfg.anchor, fallback=Fallback(),
                         steering=Steering(share=cfg.steering_share) if cfg.steering_share else None)
 
@@ -52,8 +54,8 @@ def emitter(cfg: Config) -> Emitter:
 # The model fields of `Config` (every other field configures all presets alike), and those each preset reads:
 # batches of one sweep must agree on the model fields both of their presets read, and only on those.
 _TRAINING = ("learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size")
-MODEL_FIELDS = frozenset((*_TRAINING, "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor",
-                          "t_nov", "t_qua", "budgeted"))
+_MQD = (*_TRAINING, "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor", "parent_weight")
+MODEL_FIELDS = frozenset((*_MQD, "t_nov", "t_qua", "budgeted"))
 
 
 def model_fields_read(cfg: Mapping[str, Any]) -> frozenset[str]:
@@ -63,7 +65,7 @@ def model_fields_read(cfg: Mapping[str, Any]) -> frozenset[str]:
     if algorithm in ("random", "qd"):
         return frozenset()
     if algorithm == "mqd":
-        return frozenset((*_TRAINING, "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor"))
+        return frozenset(_MQD)
     if algorithm == "mqd-paper":  # the pool only when budgeted
         return frozenset((*_TRAINING, "t_nov", "t_qua", "budgeted", *(("pool_factor",) if cfg.get("budgeted") else ())))
     return MODEL_FIELDS

@@ -12,7 +12,7 @@ import pytest
 
 from mqd_jax import Config, IsoLine, ModelEmitter, Steering, model, presets, run_mqd
 from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse
+from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
 from mqd_jax.emitters import Evaluated
 from mqd_jax.model_emitter import _share, opener_auc
 from mqd_jax.pursuit import Fallback, FallbackState
@@ -41,10 +41,14 @@ def judged(behaviors, qualities, rep, spread=None, k=5, validity=None):
                   jnp.zeros(n), jnp.asarray(near), None if validity is None else jnp.asarray(validity, jnp.float32))
 
 
-def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours, plausible=None):
+def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours, plausible=None,
+                     parent_novelty=None):
     """greedy_diverse written out: each step scores every free candidate against the repertoire's skills and the
-    wanted candidates chosen so far."""
+    wanted candidates chosen so far; a predicted opener's distance times its parent's novelty over the pool's
+    mean (1 without a parent)."""
     plausible = np.ones(len(b), bool) if plausible is None else plausible
+    factor = np.ones(len(b)) if parent_novelty is None else np.where(
+        np.isnan(parent_novelty), 1.0, parent_novelty / np.nanmean(parent_novelty))
     imagined_b, imagined_q = list(skills), list(skill_qualities)
     free, rows = np.ones(len(b), bool), []
     for _ in range(num):
@@ -53,7 +57,7 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
             d = np.linalg.norm(np.asarray(imagined_b) - b[i], axis=1)
             near = np.sort(d)[:neighbours]
             opens = near[0] + beta * spread[i] > t_dist
-            value = near.mean() + beta * spread[i] if opens else q[i] - imagined_q[int(np.argmin(d))]
+            value = (near.mean() + beta * spread[i]) * factor[i] if opens else q[i] - imagined_q[int(np.argmin(d))]
             rank = (bool(wanted[i]), bool(opens), bool(plausible[i]), value)
             if best is None or rank > best[0]:
                 best = (rank, i)
@@ -66,12 +70,14 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
     return rows
 
 
-@pytest.mark.parametrize("neighbours, skills, judge_validity", [(1, 6, False), (3, 6, False), (3, 2, False),
-                                                                (1, 6, True)])
-def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity):
+@pytest.mark.parametrize("neighbours, skills, judge_validity, parents", [
+    (1, 6, False, False), (3, 6, False, False), (3, 2, False, False), (1, 6, True, False), (1, 6, False, True),
+    (3, 6, True, True)])
+def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, parents):
     """Random pools: the scan's choice equals the rule written out, for the nearest distance and for the mean of
-    the 3 nearest (also with fewer skills than that: the mean over those there are), and with a validity
-    judgement (likely unusable candidates after the others of their tier)."""
+    the 3 nearest (also with fewer skills than that: the mean over those there are), with a validity
+    judgement (likely unusable candidates after the others of their tier) and with the parents' novelty
+    (parent_weight 1; some candidates without a parent)."""
     key = jax.random.split(jax.random.PRNGKey(neighbours + skills), 4)
     rep = repertoire_of(np.asarray(jax.random.uniform(key[0], (skills, 2))),
                         np.asarray(jax.random.uniform(key[1], (skills,))))
@@ -81,10 +87,36 @@ def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity):
     wanted = np.arange(30) % 4 != 0
     validity = np.asarray(jax.random.uniform(jax.random.PRNGKey(7), (30,))) if judge_validity else None
     pool = judged(b, q, rep, spread, k=5, validity=validity)
-    rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours)
+    parent_novelty = None
+    if parents:
+        parent_novelty = np.array(jax.random.uniform(jax.random.PRNGKey(8), (30,)), np.float32)
+        parent_novelty[::7] = np.nan
+        pool = pool.replace(parent_novelty=jnp.asarray(parent_novelty))
+    rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours, float(parents))
     expected = greedy_reference(b, q, spread, np.asarray(rep.behaviors[:skills]), np.asarray(rep.qualities[:skills]),
-                                wanted, 0.1, 0.5, 12, neighbours, None if validity is None else validity >= 0.5)
+                                wanted, 0.1, 0.5, 12, neighbours, None if validity is None else validity >= 0.5,
+                                parent_novelty)
     np.testing.assert_array_equal(rows, expected)
+    if parents:  # weight 0: the parents' novelty is not read
+        np.testing.assert_array_equal(greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours),
+                                      greedy_diverse(pool.replace(parent_novelty=None), jnp.asarray(wanted),
+                                                     jnp.float32(0.1), 0.5, 12, neighbours))
+
+
+def test_greedy_diverse_by_parent_novelty_by_hand():
+    """Two predicted openers: 0 a little farther from the skill, 1 the child of a parent three times as novel.
+    By distance 0 goes first; weighted by the parent's novelty 1 (0.3 * 1.5 > 0.31 * 0.5); with the parents'
+    novelty squared the ratio grows; without a parent a candidate keeps its distance."""
+    rep = repertoire_of([[0.0, 0.0]], [0.5])
+    pool = judged([[0.31, 0.0], [0.0, 0.3]], [0.5, 0.5], rep).replace(parent_novelty=jnp.array([0.1, 0.3]))
+    wanted = jnp.ones(2, bool)
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2), [0, 1])
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, parent_weight=1.0), [1, 0])
+    np.testing.assert_allclose(parent_factor(pool, 2.0), [0.25, 2.25], rtol=1e-6)
+    no_parent = pool.replace(parent_novelty=jnp.array([jnp.nan, 0.3]))  # 0 keeps 0.31, 1 gets 0.3 * 1
+    np.testing.assert_array_equal(greedy_diverse(no_parent, wanted, jnp.float32(0.05), 0.0, 2, parent_weight=1.0),
+                                  [0, 1])
+    np.testing.assert_allclose(parent_factor(pool.replace(parent_novelty=jnp.zeros(2)), 1.0), [1.0, 1.0])
 
 
 def test_greedy_diverse_by_novelty_by_hand():
@@ -176,6 +208,11 @@ def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
         np.testing.assert_allclose(got.qualities[i], float(rep.qualities[j]) + a[2] - p[2], rtol=1e-6)
     plain = dataclasses.replace(emitter, anchoring="none").judge(None, pool, rep, linear_task)
     np.testing.assert_allclose(got.behaviors[2], plain.behaviors[2])  # no parent: the plain prediction
+    # The parents' novelty, as the repertoire holds it; NaN without a parent, None where no parents are named.
+    novel = rep.replace(novelty=rep.novelty.at[:2].set(jnp.array([0.25, 0.75])))
+    np.testing.assert_array_equal(emitter.judge(None, pool, novel, linear_task, parents=jnp.array([1, 0, -1]))
+                                  .parent_novelty, [0.75, 0.25, np.nan])
+    assert emitter.judge(None, pool, novel, linear_task).parent_novelty is None
     # An inner emitter that names no parents: anchored at the nearest skill, as anchor="nearest".
     nearest = dataclasses.replace(emitter, anchor="nearest").judge(None, pool, rep, linear_task)
     np.testing.assert_allclose(emitter.judge(None, pool, rep, linear_task).behaviors, nearest.behaviors)
@@ -228,7 +265,9 @@ def test_diverse_selects_num_distinct_rows_and_passes_warm_up_through():
 
 
 @pytest.mark.parametrize("kw, field", [(dict(pool_factor=0), "pool_factor"), (dict(beta=-1.0), "beta"),
-                                       (dict(beta=float("nan")), "beta"), (dict(neighbours=0), "neighbours")])
+                                       (dict(beta=float("nan")), "beta"), (dict(neighbours=0), "neighbours"),
+                                       (dict(parent_weight=-1.0), "parent_weight"),
+                                       (dict(parent_weight=True), "parent_weight")])
 def test_diverse_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Diverse.{field}="):
         Diverse(**kw)
@@ -290,11 +329,12 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5,
                steering_share=0.3)
     assert presets.emitter(cfg) == ModelEmitter(
-        IsoLine(), Diverse(3, 0.5), k=cfg.k, hidden_size=cfg.hidden_size, ensemble_size=2,
+        IsoLine(), Diverse(3, 0.5, parent_weight=1.0), k=cfg.k, hidden_size=cfg.hidden_size, ensemble_size=2,
         batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", anchor="parent",
         fallback=Fallback(), steering=Steering(share=0.3))
     assert presets.emitter(dataclasses.replace(cfg, anchor="nearest")).anchor == "nearest"  # version 0.5's
     assert presets.emitter(dataclasses.replace(cfg, steering_share=0.0)).steering is None  # version 0.4's "mqd"
+    assert presets.emitter(dataclasses.replace(cfg, parent_weight=0.0)).acquisition == Diverse(3, 0.5)  # 0.6's
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
     np.testing.assert_array_equal(m["evaluations"], pop)
@@ -335,15 +375,21 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
 
 
 def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor_at_the_nearest_skill():
+    """... and before 0.7 rank predicted openers by their distance alone."""
     default = Config()
-    for algorithm, share, anchor in (("mqd", 0.0, "nearest"), ("qd", default.steering_share, default.anchor),
-                                     ("mqd-paper", default.steering_share, default.anchor)):
+    for algorithm, share, anchor, weight in (
+            ("mqd", 0.0, "nearest", 0.0), ("qd", default.steering_share, default.anchor, default.parent_weight),
+            ("mqd-paper", default.steering_share, default.anchor, default.parent_weight)):
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["steering_share"], saved["anchor"]  # version 0.4's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share, anchor=anchor)
+        del saved["steering_share"], saved["anchor"], saved["parent_weight"]  # version 0.4's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share, anchor=anchor,
+                                                 parent_weight=weight)
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["anchor"]  # version 0.5's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor)
+        del saved["anchor"], saved["parent_weight"]  # version 0.5's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor, parent_weight=weight)
+        saved = Config(algorithm=algorithm).to_dict()
+        del saved["parent_weight"]  # version 0.6's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, parent_weight=weight)
     assert Config().steering_share == 0.25 and presets.emitter(Config(algorithm="mqd")).steering == Steering(0.25)
 
 

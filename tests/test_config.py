@@ -24,7 +24,7 @@ def test_paper_presets_match_table_ii():
     ("hidden_size", True), ("capacity", 0), ("archive_capacity", 0), ("iso_sigma", -0.1),
     ("line_sigma", float("inf")), ("adaptation_step_size", 0), ("adaptation_steps", -1),
     ("coverage_resolution", 4), ("neighbour_slack", -1), ("pool_factor", 0), ("steering_share", 1.0),
-    ("steering_share", -0.1), ("anchor", "first"),
+    ("steering_share", -0.1), ("anchor", "first"), ("parent_weight", -1.0), ("parent_weight", float("nan")),
 ])
 def test_invalid_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=f"Config.{field}="):
