@@ -218,8 +218,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     # "mqd" since version 0.7; "mqd-distance-ranked" is 0.6's.
-    "mqd-parent-novelty": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism,
-                                                                    parent_weight=1.0))(cfg),
+    "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0),
     "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),

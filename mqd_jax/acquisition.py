@@ -187,8 +187,7 @@ def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
         return 1.0
     novelty = judged.parent_novelty
     mean = jnp.nanmean(novelty)
-    relative = jnp.where(jnp.isnan(novelty) | ~(mean > 0), 1.0, novelty / jnp.where(mean > 0, mean, 1.0))
-    return relative ** weight
+    return jnp.where(jnp.isnan(novelty) | ~(mean > 0), 1.0, novelty / mean) ** weight
 
 
 def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,

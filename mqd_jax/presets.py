@@ -30,8 +30,8 @@ from mqd_jax.steering import Steering
 def _mqd(cfg: Config) -> ModelEmitter:
     return ModelEmitter(IsoLine(), Diverse(cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight), k=cfg.k,
                         hidden_size=cfg.hidden_size, ensemble_size=cfg.ensemble_size, batch_size=cfg.batch_size,
-                        num_batches=cfg.num_batches,
-                        warmup_samples=cfg.warmup_samples, anchoring="auto", anchor=cfg.anchor, fallback=Fallback(),
+                        num_batches=cfg.num_batches, warmup_samples=cfg.warmup_samples, anchoring="auto",
+                        anchor=cfg.anchor, fallback=Fallback(),
                         steering=Steering(share=cfg.steering_share) if cfg.steering_share else None)
 
 
