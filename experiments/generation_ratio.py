@@ -14,30 +14,13 @@ always measured and is the baseline of the ratios.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import jax
 import report
-from sample_efficiency import COMPOSITIONS
+from sample_efficiency import configured
 
 from mqd_jax import Config, init
 from mqd_jax.run import generation, run_generations
-
-
-def parse(spec: str, task: str) -> Config:
-    """A config from "NAME" or "NAME:FIELD=VALUE,...", the values' types those of `Config`'s defaults."""
-    name, _, changes = spec.partition(":")
-    if name not in COMPOSITIONS:
-        raise SystemExit(f"{spec!r}: {name!r} is not a preset or a composition of sample_efficiency.py")
-    cfg = Config.paper_2d(task=task)
-    fields = {f.name for f in dataclasses.fields(Config)}
-    for change in filter(None, changes.split(",")):
-        field, _, value = change.partition("=")
-        if field not in fields:
-            raise SystemExit(f"{spec!r}: {field!r} is not a Config field")
-        cfg = dataclasses.replace(cfg, **{field: type(getattr(cfg, field))(value)})
-    composed = COMPOSITIONS[name](cfg)
-    return composed if isinstance(composed, Config) else dataclasses.replace(cfg, algorithm=composed)
 
 
 def main() -> None:
@@ -51,7 +34,7 @@ def main() -> None:
     grow = jax.jit(run_generations, static_argnums=(1, 3))
     timed = {}
     for spec in ["qd", *args.configs]:
-        cfg = parse(spec, args.task)
+        cfg = configured(spec, Config.paper_2d(task=args.task))
         params = cfg.params()
         state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
         step = jax.jit(lambda s, cfg=cfg, params=params: generation(s, cfg, params))

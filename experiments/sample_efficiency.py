@@ -4,8 +4,11 @@
         [--compositions qd mqd-paper mqd ...] [--out docs/data/sample_efficiency_2d.md]
     python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--run COMPOSITION ...] [--out ...]
 
-Every composition runs `--seeds` seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the
-task's Table II settings, vmapped in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
+A composition is a name of `COMPOSITIONS` or "NAME:FIELD=VALUE,..." with fields of `Config`
+changed before NAME composes the config (`mqd:parent_weight=2`; refused before anything runs
+where NAME sets or ignores the field, or the value is invalid). Every composition runs `--seeds`
+seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the task's Table II settings, vmapped
+in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
 presets `mqd sweep` wrote to those folders instead of running (the robot tasks, whose runs take long);
 `--run` adds compositions run here on the same tasks and seeds.
 
@@ -45,6 +48,7 @@ import report
 
 from mqd_jax import Config, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Validity, presets, registry, results
 from mqd_jax.acquisition import Budgeted, Diverse
+from mqd_jax.config import Params
 from mqd_jax.model_emitter import ModelEmitterState
 from mqd_jax.sweep import run_batch, seed_keys
 from mqd_jax.task import Task
@@ -254,15 +258,60 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
 FRACTIONS = (0.25, 0.5, 1.0)
 
 
-def _run(task: str, name: str, seeds: int, generations: int | None) -> dict[str, Any]:
-    cfg = Config.paper(task, **({} if generations is None else {"max_generations": generations}))
-    composed = COMPOSITIONS[name](cfg)
-    cfg = composed if isinstance(composed, Config) else dataclasses.replace(cfg, algorithm=composed)
+def _value(field: str, text: str, like: Any) -> Any:
+    """`text` as a value of `Config.field`, of the type of `like` (its value in the base config)."""
+    if isinstance(like, bool):  # bool("False") is True
+        if text.lower() not in ("true", "false"):
+            raise SystemExit(f"{field}={text!r}: expected true or false")
+        return text.lower() == "true"
+    try:
+        return type(like)(text)
+    except ValueError:
+        raise SystemExit(f"{field}={text!r}: expected a {type(like).__name__}") from None
+
+
+def configured(spec: str, cfg: Config) -> Config:
+    """The config a composition spec runs: "NAME" (a key of `COMPOSITIONS`) or "NAME:FIELD=VALUE,FIELD=VALUE"
+    (fields of `Config`, set in `cfg` before NAME composes it). Refused (SystemExit) for an unknown name or field,
+    a value of the wrong type, an invalid config, or a field the composition sets otherwise itself."""
+    name, _, changes = spec.partition(":")
+    if name not in COMPOSITIONS:
+        raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
+    fields = {f.name for f in dataclasses.fields(Config)}
+    asked = {}
+    for change in filter(None, changes.split(",")):
+        field, equals, text = change.partition("=")
+        if field not in fields or not equals:
+            raise SystemExit(f"{spec!r}: {change!r} is not FIELD=VALUE with a field of Config")
+        asked[field] = _value(field, text, getattr(cfg, field))
+    base = {field: getattr(cfg, field) for field in asked}
+    try:  # the changes made under the composition's preset, which they may need (budgeted: "mqd-paper")
+        preset = COMPOSITIONS[name](cfg)
+        preset = preset.algorithm if isinstance(preset, Config) else preset
+        cfg = dataclasses.replace(cfg, **asked, algorithm=preset if isinstance(preset, str) else cfg.algorithm)
+        composed = COMPOSITIONS[name](cfg)
+        cfg = composed if isinstance(composed, Config) else dataclasses.replace(cfg, algorithm=composed)
+    except ValueError as error:
+        raise SystemExit(f"{spec!r}: {error}") from None
+    # A field the composition overwrites in the config, or a model field that builds the emitter (not a traced
+    # parameter) whose change leaves the composition's emitter as it was (a composition that fixes it).
+    structural = presets.MODEL_FIELDS - {f.name for f in dataclasses.fields(Params)}
+    unchanged = {field for field in asked.keys() & structural if asked[field] != base[field]
+                 if presets.emitter(configured(name, dataclasses.replace(cfg, **{field: base[field]})))
+                 == presets.emitter(cfg)}
+    overridden = [field for field, value in asked.items() if getattr(cfg, field) != value or field in unchanged]
+    if overridden:
+        raise SystemExit(f"{spec!r}: {name} sets or ignores {', '.join(overridden)}")
+    return cfg
+
+
+def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str, Any]:
+    cfg = configured(spec, Config.paper(task, **({} if generations is None else {"max_generations": generations})))
     compiled = {}
     start = time.perf_counter()
     _, metrics = run_batch(cfg, seed_keys(seeds), on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
     ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
-    print(f"{task} {name}: {time.perf_counter() - start:.0f} s", flush=True)
+    print(f"{task} {spec}: {time.perf_counter() - start:.0f} s", flush=True)
     return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms}
 
 
@@ -319,7 +368,7 @@ def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str | No
     for ax, (task, by) in zip(axes[0], curves.items(), strict=True):
         for name, c in by.items():
             ax.plot(c["rollouts"], c["coverage"], label=name, lw=2.2 if name == "mqd" else 1.2,
-                    ls="--" if name == "oracle" else "-")
+                    ls="--" if name.partition(":")[0] == "oracle" else "-")
         ax.axhline(by["qd"]["coverage"][-1], color="0.6", lw=0.8, ls=":")
         ax.set(title=task, xlabel="rollouts", ylabel="coverage")
     axes[0][-1].legend(fontsize=7, loc="lower right")
@@ -375,12 +424,14 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--generations", type=int, default=None, help="override Table II's (quick checks)")
-    parser.add_argument("--compositions", nargs="+", default=list(COMPOSITIONS), choices=list(COMPOSITIONS))
+    parser.add_argument("--compositions", nargs="+", default=list(COMPOSITIONS),
+                        help="names of COMPOSITIONS, each optionally with Config fields changed: NAME:FIELD=VALUE,...")
     parser.add_argument("--sweep", nargs="+", default=None,
                         help="read the presets of `mqd sweep` folders instead of running; DIR=SUFFIX names "
                         "that folder's runs PRESET-SUFFIX (a variant beside the same presets in another folder)")
-    parser.add_argument("--run", nargs="+", default=None, choices=list(COMPOSITIONS),
-                        help="with --sweep: also run these compositions on the sweeps' tasks and seeds")
+    parser.add_argument("--run", nargs="+", default=None,
+                        help="with --sweep: also run these compositions (as --compositions) on the sweeps' tasks and "
+                        "seeds")
     parser.add_argument("--baseline", nargs="+", default=[], metavar="JSON",
                         help="take QD's curves (which no model change touches) from these earlier outputs of this "
                         "script (NAME.json beside NAME.md, which names its machine and seeds) instead of running QD")
@@ -389,6 +440,9 @@ def main() -> None:
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
     args = parser.parse_args()
     register_experiment_tasks(args.tasks)
+    for task in args.tasks:  # a bad spec is refused before anything runs
+        for spec in [*args.compositions, *(args.run or [])]:
+            configured(spec, Config.paper(task))
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
     if args.baseline and args.sweep:
@@ -413,7 +467,8 @@ def main() -> None:
     else:
         for task in args.tasks:
             robot = registry.make(task).table_ii_column == "robot"
-            names = ["qd"] + [n for n in args.compositions if n != "qd" and not (robot and n == "oracle")]
+            names = ["qd"] + [n for n in args.compositions
+                              if n != "qd" and not (robot and n.partition(":")[0] == "oracle")]
             curves[task] = {name: known[task][name] if name in known.get(task, {}) else
                             _run(task, name, args.seeds, args.generations) for name in names}
         seeds = {args.seeds}
