@@ -79,10 +79,13 @@ class Judged:
         single network).
       distance: [N] from b~ to the nearest repertoire skill's behavior (inf if none).
       nearest_quality: [N] that skill's quality (0 if none).
-      novelty: [N] nov~; improvement: [N] qua~ (`predicted_scores`; a rule
-        that does not read them costs nothing: XLA drops unused work).
+      novelty: [N] nov~; improvement: [N] qua~ (`predicted_scores`).
       neighbours: [N, K] distances from b~ to its K nearest skills, ascending
         (inf where fewer exist; its first column is `distance`), or None.
+        `ModelEmitter` finds the nearest skill (distance, nearest_quality) and
+        the K nearest (novelty, improvement, neighbours) by two searches, so
+        that a rule reading none of one's fields costs nothing of it (XLA
+        drops unused work: `Diverse` with one neighbour reads the first only).
       validity: [N] the probability of a usable rollout (`mqd_jax.validity`), or None (all judged usable).
       parent_novelty: [N] the repertoire's novelty of each candidate's parent (the skill it was varied from; NaN
         for a candidate without one), or None where the inner emitter names no parents.

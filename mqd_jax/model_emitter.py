@@ -223,14 +223,17 @@ class ModelEmitter(Emitter):
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
         spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
-        sq, slots = repertoire_lib.k_nearest(repertoire, behaviors, self.k)  # one search
-        nearest_quality = jnp.where(slots[:, 0] >= 0, repertoire.qualities[jnp.maximum(slots[:, 0], 0)], 0.0)
+        # Two searches, so that XLA drops the one whose results the rule does not read: the K nearest skills
+        # (novelty, improvement, neighbours) cost 2-3x the nearest one (distance, nearest quality) on a large pool.
+        sq, slots = repertoire_lib.k_nearest(repertoire, behaviors, self.k)
+        nearest_sq, nearest = repertoire_lib.k_nearest(repertoire, behaviors, 1)
+        nearest_quality = jnp.where(nearest[:, 0] >= 0, repertoire.qualities[jnp.maximum(nearest[:, 0], 0)], 0.0)
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
         distances = jnp.sqrt(sq)
         validity = None if self.validity is None else self.validity.probability(state.validity, actions, task)
         parent_novelty = None if parents is None else jnp.where(
             parents >= 0, repertoire.novelty[jnp.maximum(parents, 0)], jnp.nan)
-        return acquisition.Judged(behaviors, qualities, spread, distances[:, 0], nearest_quality, novelty,
+        return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(nearest_sq[:, 0]), nearest_quality, novelty,
                                   improvement, distances, validity, parent_novelty)
 
     def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
@@ -276,8 +279,11 @@ class ModelEmitter(Emitter):
         if self.fallback is not None:
             rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
         keep = lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x  # noqa: E731
+        # The kept rows' predicted distances (the opener AUC's score) searched for them alone, as judged.distance
+        # would give them: a rule that reads no distances (Budgeted) then does not pay for a search of the pool.
+        kept_sq, _ = repertoire_lib.k_nearest(repertoire, judged.behaviors[rows], 1)
         info = {"inner": jax.tree.map(keep, pool.info), "predicted_behaviors": judged.behaviors[rows],
-                "predicted_distance": judged.distance[rows], "from_model": from_model, "discarded": discarded}
+                "predicted_distance": jnp.sqrt(kept_sq[:, 0]), "from_model": from_model, "discarded": discarded}
         if self.steering is not None:
             info["steered"] = steered[rows] & rollout
         if self.validity is not None:

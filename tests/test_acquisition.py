@@ -194,6 +194,34 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     np.testing.assert_allclose(empty.behaviors, plain.behaviors)
 
 
+def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_force(linear_task):
+    """The nearest skill (distance, quality; ties to the lower slot) and the K nearest come from two searches: both
+    as a brute-force search gives them, and a proposal's predicted distances are its kept rows' distances."""
+    rep = repertoire_of([[0.5, 0.0], [0.75, 0.0], [0.25, 0.0], [0.5, 0.5]], [0.1, 0.2, 0.3, 0.4])
+    # Plain predictions = the actions' first two coordinates + (0.5, -0.5) on average over the two members; all
+    # binary fractions, so that the first two rows' ties (slots 0 and 1; 0 and 3) are exact.
+    pool = jnp.array([[0.125, 0.5, 0.0], [0.0, 0.75, 0.0], [-0.375, 1.0, 0.0], [0.25, -0.25, 0.0],
+                      [-0.5, 0.25, 0.0]])
+    emitter = _Known(IsoLine(), Diverse(2), anchoring="none", k=3)
+    got = emitter.judge(None, pool, rep, linear_task)
+    b = np.asarray(pool)[:, :2] + [0.5, -0.5]
+    d = np.sqrt(((b[:, None] - np.asarray(rep.behaviors[:4])[None]) ** 2).sum(-1))
+    nearest = d.argmin(1)  # the first of equal minima: the lower slot
+    assert d[0, 0] == d[0, 1] and d[1, 0] == d[1, 3] and nearest[0] == nearest[1] == 0
+    np.testing.assert_allclose(got.distance, d.min(1), rtol=1e-6)
+    np.testing.assert_allclose(got.nearest_quality, np.asarray(rep.qualities)[nearest], rtol=1e-6)
+    np.testing.assert_allclose(got.neighbours, np.sort(d, 1)[:, :3], rtol=1e-6)
+    np.testing.assert_allclose(got.novelty, np.sort(d, 1)[:, :3].mean(1), rtol=1e-6)
+    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    state = state.replace(evaluations=jnp.int32(emitter.warmup_samples))  # past warm-up: the rule chooses
+    proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task, Config().params(), 3)
+    kept = np.sqrt(((np.asarray(proposal.info["predicted_behaviors"])[:, None] - np.asarray(rep.behaviors[:4])[None])
+                    ** 2).sum(-1)).min(1)
+    np.testing.assert_allclose(proposal.info["predicted_distance"], kept, rtol=1e-6)
+    empty = emitter.judge(None, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
+    assert np.all(np.isinf(empty.distance)) and np.all(np.asarray(empty.nearest_quality) == 0.0)
+
+
 def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
