@@ -273,7 +273,7 @@ def _value(field: str, text: str, like: Any) -> Any:
 def configured(spec: str, cfg: Config) -> Config:
     """The config a composition spec runs: "NAME" (a key of `COMPOSITIONS`) or "NAME:FIELD=VALUE,FIELD=VALUE"
     (fields of `Config`, set in `cfg` before NAME composes it). Refused (SystemExit) for an unknown name or field,
-    a value of the wrong type, an invalid config, or a field the composition sets otherwise itself."""
+    a value of the wrong type, an invalid config, or a field the composition sets or ignores."""
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:
         raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
@@ -296,9 +296,9 @@ def configured(spec: str, cfg: Config) -> Config:
     # A field the composition overwrites in the config, or a model field that builds the emitter (not a traced
     # parameter) whose change leaves the composition's emitter as it was (a composition that fixes it).
     structural = presets.MODEL_FIELDS - {f.name for f in dataclasses.fields(Params)}
-    unchanged = {field for field in asked.keys() & structural if asked[field] != base[field]
-                 if presets.emitter(configured(name, dataclasses.replace(cfg, **{field: base[field]})))
-                 == presets.emitter(cfg)}
+    unchanged = {field for field in asked.keys() & structural
+                 if asked[field] != base[field] and presets.emitter(cfg) == presets.emitter(
+                     configured(name, dataclasses.replace(cfg, **{field: base[field]})))}
     overridden = [field for field, value in asked.items() if getattr(cfg, field) != value or field in unchanged]
     if overridden:
         raise SystemExit(f"{spec!r}: {name} sets or ignores {', '.join(overridden)}")
