@@ -296,9 +296,9 @@ def configured(spec: str, cfg: Config) -> Config:
     # A field the composition overwrites in the config, or a model field that builds the emitter (not a traced
     # parameter) whose change leaves the composition's emitter as it was (a composition that fixes it).
     structural = presets.MODEL_FIELDS - {f.name for f in dataclasses.fields(Params)}
-    unchanged = {field for field in asked.keys() & structural
-                 if asked[field] != base[field] and presets.emitter(cfg) == presets.emitter(
-                     configured(name, dataclasses.replace(cfg, **{field: base[field]})))}
+    emitter = presets.emitter(cfg)
+    unchanged = {field for field in asked.keys() & structural if asked[field] != base[field]
+                 and emitter == presets.emitter(configured(name, dataclasses.replace(cfg, **{field: base[field]})))}
     overridden = [field for field, value in asked.items() if getattr(cfg, field) != value or field in unchanged]
     if overridden:
         raise SystemExit(f"{spec!r}: {name} sets or ignores {', '.join(overridden)}")
