@@ -1,15 +1,24 @@
 import dataclasses
 import functools
 import os
+import subprocess
+import sys
 
 # MuJoCo's offscreen renderer (tests that render skip where no EGL context can be made); read at mujoco's import.
 os.environ.setdefault("MUJOCO_GL", "egl")
-# The tests compile far more than they compute (tiny populations, short horizons): XLA's CPU backend at
-# optimization level 0 compiles their programs a third to 40% faster (two test files, measured). Read when the
-# backend starts, so set before it does; a level the caller chose is kept, and subprocesses inherit it. A test
-# that simulates for long in JAX (MJX) compiles that program at the default level (`optimized_jit`).
+# The tests compile far more than they compute (tiny populations, short horizons). XLA's CPU backend compiles
+# their programs faster at optimization level 0 (a third to 40%, two test files, measured) and with its older
+# elemental emitters instead of its fusion emitters (a tiny "mqd" run: 9.0 s to 5.8 s; the whole suite: 944 s to
+# 423 s on 2 cores with the merged MJX test). Read when the backend starts, so set before it does; a setting the caller chose is
+# kept, and subprocesses inherit them. A test that simulates for long in JAX (MJX) compiles that program at the
+# default level (`optimized_jit`). The elemental emitters may round a result differently from one program to
+# another (measured: ask/tell's actions one float32 ulp from the fused run's), so the tests that two different
+# programs of a computation agree bit for bit are marked `fusion_emitters` and run in a process with XLA's
+# default emitters, as users run (`pytest_pyfunc_call`).
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
+if not os.environ.get("MQD_TESTS_FUSION_EMITTERS") and "xla_cpu_use_fusion_emitters" not in os.environ["XLA_FLAGS"]:
+    os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +26,27 @@ import numpy as np
 import pytest
 
 from mqd_jax import Config, Task, cli, registry
+
+FUSION_EMITTERS = "MQD_TESTS_FUSION_EMITTERS"  # set: this process keeps XLA's default (fusion) emitters
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "fusion_emitters: runs in a process with XLA's default (fusion) emitters")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_pyfunc_call(pyfuncitem):
+    """A `fusion_emitters` test runs in a pytest process of its own with XLA's default emitters (see above)."""
+    if pyfuncitem.get_closest_marker("fusion_emitters") is None or os.environ.get(FUSION_EMITTERS):
+        return None
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_cpu_use_fusion_emitters" not in f)
+    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", pyfuncitem.nodeid],
+                         env={**os.environ, FUSION_EMITTERS: "1", "XLA_FLAGS": flags},
+                         cwd=pyfuncitem.config.rootpath, capture_output=True, text=True)
+    if out.returncode != 0:
+        pytest.fail(f"in a process with XLA's fusion emitters:\n{out.stdout[-6000:]}{out.stderr[-2000:]}",
+                    pytrace=False)
+    return True
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -18,6 +18,7 @@ def numpy_evaluator(actions, mask):
     return b, q, np.asarray(mask).copy()
 
 
+@pytest.mark.fusion_emitters
 @pytest.mark.parametrize("algorithm", ["qd", "mqd"])
 def test_ask_tell_with_a_numpy_evaluator_equals_the_fused_run(algorithm, tiny):
     cfg = tiny(task="obstacle2d", algorithm=algorithm, warmup_samples=64, num_batches=20)

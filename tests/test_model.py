@@ -99,6 +99,7 @@ def run(cfg):
     return run_mqd(jax.random.PRNGKey(4), cfg)
 
 
+@pytest.mark.fusion_emitters
 def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
     qd = tiny(task="obstacle2d", algorithm="qd")
     mqd = dataclasses.replace(qd, algorithm="mqd-paper", t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)

@@ -85,59 +85,57 @@ def test_a_vmapped_run_makes_one_rollout_call_per_generation():
 
 
 @pytest.mark.parametrize("backend", ["mjx", "warp"])
-def test_the_backends_agree_with_c_mujoco_on_the_final_object_position(backend, optimized_jit):
-    # Untouched, and a push along +x 12 mm off the cube's centre line. Measured: equal, and within 1 cm (the
-    # contact solvers differ: MJX in float32 with its own collision routines). A push exactly on the centre
-    # line is an unstable equilibrium: C MuJoCo keeps its symmetry to 1e-11, MJX's float32 breaks it and
-    # the cube ends 1.7 cm aside; a glancing sweep that knocks the cube sideways diverged by 4 cm, so the
-    # check uses clean pushes. Short horizon: MJX compiles slowly on CPU.
+def test_the_backends_agree_with_c_mujoco_on_pushes_and_on_the_arm_touching_the_table(backend, optimized_jit):
+    # Pushes: untouched, and a push along +x 12 mm off the cube's centre line. Measured: equal, and within 1 cm
+    # (the contact solvers differ: MJX in float32 with its own collision routines). A push exactly on the
+    # centre line is an unstable equilibrium: C MuJoCo keeps its symmetry to 1e-11, MJX's float32 breaks it
+    # and the cube ends 1.7 cm aside; a glancing sweep that knocks the cube sideways diverged by 4 cm, so the
+    # check uses clean pushes. A touch: a push with its via-points 5 mm below the table's top presses the tool
+    # on the table from its first via-point on (the touch sensors are MuJoCo contact sensors per geom pair,
+    # which MJX implements; by body or subtree it would not). All three rows are one simulation a backend:
+    # MJX compiles a program for ~45 s on this CPU, and `evaluate` judges outcomes and touches from the
+    # sensors alike on every backend, so the backends are compared on `simulate`. Short horizon.
     # MuJoCo Warp runs on Warp's CPU device here (its kernels compile for about 90 s the first time).
     from envs import manipulation, push
 
     if backend == "warp" and not manipulation.warp_installed():
         pytest.skip("MuJoCo Warp is not installed (pip install -e .[gpu])")
-    actions = jnp.array([[0.45, 0.25, 0.0, 40, 0.5, 0.25, 0.0, 40],
-                         [0.5, 0.012, 0.0, 30, 0.75, 0.012, 0.0, 50]], jnp.float32)
+    pushes = jnp.array([[0.45, 0.25, 0.0, 40, 0.5, 0.25, 0.0, 40],
+                        [0.5, 0.012, 0.0, 30, 0.75, 0.012, 0.0, 50]], jnp.float32)
+    touch = pushes[:1]
     out = {}
     for name in ("mujoco", backend):
-        task = push.make("push_cube", 0.025, backend=name, t_max=50, motion_steps=340, settle=120)
-        assert task.physics == name
-        out[name] = [np.asarray(x) for x in optimized_jit(task.evaluate)(actions, None)]
-    (b_c, q_c, v_c), (b_x, q_x, v_x) = out["mujoco"], out[backend]
-    assert np.all(v_c) and np.all(v_x)
-    assert b_c[1, 0] - kuka.TABLE_CENTRE[0] > 0.05  # the push moved the cube
-    np.testing.assert_allclose(b_x, b_c, atol=0.01)
-    np.testing.assert_allclose(q_x, q_c, atol=0.01)  # end-effector path lengths, metres
-    if backend == "warp":  # vmapped over seeds: one flat batch of worlds, the same rollouts
-        b_s, _, v_s = optimized_jit(jax.vmap(lambda a: task.evaluate(a, None)))(jnp.stack([actions, actions[::-1]]))
-        np.testing.assert_allclose(b_s[0], b_x, atol=1e-5)
-        np.testing.assert_allclose(b_s[1], b_x[::-1], atol=1e-5)
-        assert np.all(v_s)
+        over, below = (push.make("push_cube", height, backend=name, t_max=50, motion_steps=340, settle=120)
+                       for height in (0.025, -0.005))
+        assert over.physics == name
 
+        def simulate(pushes, touch, over=over, below=below):
+            plans = over.plan(pushes), below.plan(touch)
+            _, sensors, finite = over.simulate(jnp.concatenate([p.ctrl for p in plans]), jnp.ones(3, bool))
+            return over.outcome(sensors[:2], plans[0].durations)[:2], sensors, finite
 
-@pytest.mark.parametrize("backend", ["mjx", "warp"])
-def test_the_backends_see_the_arm_touch_the_table_as_c_mujoco_does(backend, optimized_jit):
-    # A push with its via-points 5 mm below the table's top: the tool presses on the table from its first
-    # via-point on, so the rollout is invalid on every backend (the touch sensors are MuJoCo contact sensors
-    # per geom pair, which MJX implements; by body or subtree it would not). `evaluate` judges a touch from
-    # these sensors (`kuka.arm_touched`) alike on every backend, so one simulation a backend suffices: MJX
-    # compiles a program for ~40 s on this CPU.
-    from envs import manipulation, push
-
-    if backend == "warp" and not manipulation.warp_installed():
-        pytest.skip("MuJoCo Warp is not installed (pip install -e .[gpu])")
-    actions = jnp.array([[0.45, 0.25, 0.0, 40, 0.5, 0.25, 0.0, 40]], jnp.float32)
-    touches, touched = {}, {}
-    for name in ("mujoco", backend):
-        task = push.make("push_cube", -0.005, backend=name, t_max=50, motion_steps=340, settle=20)
-        sensors = optimized_jit(lambda a, task=task: task.simulate(task.plan(a).ctrl, jnp.ones(1, bool))[1])(actions)
-        touches[name] = np.asarray(sensors[0, :, kuka.ARM_TOUCH]).sum(axis=0)  # contact-steps per geom pair
-        touched[name] = bool(kuka.arm_touched(sensors)[0])
-        if name == "mujoco":  # C MuJoCo's evaluate: that touch makes the rollout invalid
-            assert not bool(task.evaluate(actions, None)[2][0])
+        (behaviors, qualities), sensors, finite = optimized_jit(simulate)(pushes, touch)
+        out[name] = dict(behaviors=np.asarray(behaviors), qualities=np.asarray(qualities), finite=np.asarray(finite),
+                         touched=np.asarray(kuka.arm_touched(sensors)),
+                         touches=np.asarray(sensors[2, :, kuka.ARM_TOUCH]).sum(axis=0))  # contact-steps per pair
+        if name == "mujoco":  # C MuJoCo's evaluate: the pushes are valid rollouts, the touch makes one invalid
+            valid = jax.jit(lambda p, t, over=over, below=below: (over.evaluate(p, None)[2],
+                                                                  below.evaluate(t, None)[2]))(pushes, touch)
+            np.testing.assert_array_equal(np.concatenate(valid), [True, True, False])
+    c, x = out["mujoco"], out[backend]
+    assert np.all(c["finite"]) and np.all(x["finite"])
+    np.testing.assert_array_equal(c["touched"], [False, False, True])
+    np.testing.assert_array_equal(x["touched"], c["touched"])
+    assert c["behaviors"][1, 0] - kuka.TABLE_CENTRE[0] > 0.05  # the push moved the cube
+    np.testing.assert_allclose(x["behaviors"], c["behaviors"], atol=0.01)
+    np.testing.assert_allclose(x["qualities"], c["qualities"], atol=0.01)  # end-effector path lengths, metres
     table = kuka.arm_world_pairs(kuka.load("push_cube")).index(("tool", "table"))
-    assert touches["mujoco"][table] > 100 and abs(touches[backend][table] - touches["mujoco"][table]) <= 5
-    assert touched == {"mujoco": True, backend: True}
+    assert c["touches"][table] > 100 and abs(x["touches"][table] - c["touches"][table]) <= 5
+    if backend == "warp":  # vmapped over seeds: one flat batch of worlds, the same rollouts
+        b_s, _, v_s = optimized_jit(jax.vmap(lambda a: over.evaluate(a, None)))(jnp.stack([pushes, pushes[::-1]]))
+        np.testing.assert_allclose(b_s[0], x["behaviors"], atol=1e-5)
+        np.testing.assert_allclose(b_s[1], x["behaviors"][::-1], atol=1e-5)
+        assert np.all(v_s)
 
 
 def test_the_ik_jacobian_is_the_residuals_derivative():

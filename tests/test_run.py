@@ -50,6 +50,7 @@ def test_same_key_same_result_and_vmap_over_keys(tiny, assert_same):
         assert_same(a, b[1])
 
 
+@pytest.mark.fusion_emitters
 def test_traced_params_match_static_config_and_vmap(tiny, assert_same):
     cfg = tiny()
     other = dataclasses.replace(cfg, iso_sigma=0.1, t_dist=0.015)

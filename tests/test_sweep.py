@@ -1,3 +1,4 @@
+import functools
 import importlib.util
 import json
 import os
@@ -81,6 +82,7 @@ def _cpu_env(devices):
     return {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
 
 
+@functools.cache  # the same subprocess's result for the two tests that compare with it
 def _batch_on(devices):
     out = subprocess.run([sys.executable, "-c", _BATCH], env=_cpu_env(devices), capture_output=True, text=True,
                          check=True)
