@@ -8,13 +8,14 @@ import sys
 os.environ.setdefault("MUJOCO_GL", "egl")
 # The tests compile far more than they compute (tiny populations, short horizons). XLA's CPU backend compiles
 # their programs faster at optimization level 0 (a third to 40%, two test files, measured) and with its older
-# elemental emitters instead of its fusion emitters (a tiny "mqd" run: 9.0 s to 5.8 s; the whole suite: 944 s to
-# 423 s on 2 cores with the merged MJX test). Read when the backend starts, so set before it does; a setting the caller chose is
-# kept, and subprocesses inherit them. A test that simulates for long in JAX (MJX) compiles that program at the
-# default level (`optimized_jit`). The elemental emitters may round a result differently from one program to
-# another (measured: ask/tell's actions one float32 ulp from the fused run's), so the tests that two different
-# programs of a computation agree bit for bit are marked `fusion_emitters` and run in a process with XLA's
-# default emitters, as users run (`pytest_pyfunc_call`).
+# elemental emitters instead of its fusion emitters (a tiny "mqd" run: 9.0 s to 5.8 s; the MJX program: 56 s to
+# 36 s; with the suite's other changes of the same commit, 944 s to 424 s on 2 cores). Read when the backend
+# starts, so set before it does; a setting the caller chose is kept, and subprocesses inherit them. A test that
+# simulates for long in JAX (MJX) compiles that program at the default level (`optimized_jit`). The elemental
+# emitters may round a result differently from one program to another (measured: ask/tell's actions one
+# float32 ulp from the fused run's), so the tests that two different programs of a computation agree bit for
+# bit are marked `fusion_emitters` and run in a process with XLA's default emitters, as users run
+# (`pytest_pyfunc_call`).
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
 if not os.environ.get("MQD_TESTS_FUSION_EMITTERS") and "xla_cpu_use_fusion_emitters" not in os.environ["XLA_FLAGS"]:
