@@ -93,7 +93,7 @@ def test_the_backends_agree_with_c_mujoco_on_pushes_and_on_the_arm_touching_the_
     # check uses clean pushes. A touch: a push with its via-points 5 mm below the table's top presses the tool
     # on the table from its first via-point on (the touch sensors are MuJoCo contact sensors per geom pair,
     # which MJX implements; by body or subtree it would not). All three rows are one simulation a backend:
-    # MJX compiles a program for ~45 s on this CPU, and `evaluate` judges outcomes and touches from the
+    # MJX compiles a program for ~40 s on this CPU, and `evaluate` judges outcomes and touches from the
     # sensors alike on every backend, so the backends are compared on `simulate`. Short horizon.
     # MuJoCo Warp runs on Warp's CPU device here (its kernels compile for about 90 s the first time).
     from envs import manipulation, push
