@@ -238,6 +238,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
     "mqd-two-scales": _replaced(inner=MultiScaleIsoLine()),
     "mqd-two-scales-half": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 0.5))),
+    "mqd-two-scales-wide": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 2.0))),
     "mqd-voronoi-mutation-half": _replaced(steering=Steering(share=0.5, step="mutation")),
     "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
     "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),
