@@ -236,6 +236,9 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-voronoi-mutation-quarter": _replaced(steering=Steering(share=0.25, step="mutation")),
     "mqd-steered-mixed-quarter": _replaced(steering=MixedSteering(share=0.25)),
     "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
+    **{f"mqd-quality-share-{s:g}": lambda cfg, s=s: _replaced(acquisition=Diverse(
+        cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=s))(cfg)
+       for s in (0.1, 0.2, 0.3)},
     "mqd-two-scales": _replaced(inner=MultiScaleIsoLine()),
     "mqd-two-scales-half": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 0.5))),
     "mqd-two-scales-wide": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 2.0))),
@@ -310,10 +313,33 @@ def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str,
     cfg = configured(spec, Config.paper(task, **({} if generations is None else {"max_generations": generations})))
     compiled = {}
     start = time.perf_counter()
-    _, metrics = run_batch(cfg, seed_keys(seeds), on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
+    states, metrics = run_batch(cfg, seed_keys(seeds),
+                                on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
     ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
     print(f"{task} {spec}: {time.perf_counter() - start:.0f} s", flush=True)
-    return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms}
+    rep = jax.device_get(states.repertoire)
+    skills = [(rep.behaviors[i, :n], rep.qualities[i, :n]) for i, n in enumerate(rep.count)]
+    return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms, SKILLS: skills, "t_dist": cfg.t_dist}
+
+
+# Each seed's final skills (behaviors [n, d], qualities [n]) of a run made here: not written to the JSON (large).
+SKILLS = "final_skills"
+
+
+def quality_on_shared_niches(skills: list[tuple[np.ndarray, np.ndarray]],
+                             qd_skills: list[tuple[np.ndarray, np.ndarray]], t_dist: float) -> tuple[float, float]:
+    """The mean over seeds of the mean quality difference, over QD's final skills that have one of the
+    composition's (same seed) within `t_dist`, of the nearest such skill's quality minus QD's; and the mean share
+    of QD's skills that have one. A mean quality compares repertoires of different niches (one that holds more far,
+    hard niches scores lower with skills as good where both hold one); this compares like with like."""
+    gaps, shares = [], []
+    for (b, q), (qd_b, qd_q) in zip(skills, qd_skills, strict=True):
+        d = np.linalg.norm(qd_b[:, None, :] - b[None, :, :], axis=-1)  # [QD's skills, the composition's]
+        nearest = d.argmin(axis=1)
+        shared = d[np.arange(len(qd_b)), nearest] <= t_dist
+        gaps.append(np.mean(q[nearest[shared]] - qd_q[shared]))
+        shares.append(shared.mean())
+    return float(np.mean(gaps)), float(np.mean(shares))
 
 
 # The model's diagnostics (README, "Metrics"), averaged over seeds and the generations past warm-up.
@@ -356,7 +382,12 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
         if timed else ["", ""]
     diagnostics = [f"{curve[n]:.2f}" if np.isfinite(curve.get(n, np.nan)) else ""
                    for n in ("invalid_share", *DIAGNOSTICS)]
-    return [name, to_qd, *at, f"{quality:.3f}", f"{final.mean():.3f} +- {final.std():.3f}",
+    # Final repertoires compare at QD's budget only where both runs spent it.
+    shared = ""
+    if SKILLS in curve and SKILLS in qd and abs(curve["rollouts"][-1] - budget) < 0.5:
+        gap, share = quality_on_shared_niches(curve[SKILLS], qd[SKILLS], curve["t_dist"])
+        shared = f"{gap:+.3f} ({share:.2f})"
+    return [name, to_qd, *at, f"{quality:.3f}", shared, f"{final.mean():.3f} +- {final.std():.3f}",
             f"{curve['rollouts'][-1]:.0f}", *timing, *diagnostics]
 
 
@@ -487,7 +518,10 @@ def main() -> None:
                 "in the .md beside it)." if taken else ""), "",
              "Rollouts to QD = fraction of QD's rollouts at which the mean coverage first reaches QD's final mean "
              "coverage. Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
-             "final value). Quality = the repertoire's mean quality after QD's rollouts."
+             "final value). Quality = the repertoire's mean quality after QD's rollouts. Quality on QD's niches: "
+             "over QD's final skills with one of the composition's final skills within t_dist (same seed; the share "
+             "of QD's skills that have one in brackets), the mean of the nearest such skill's quality minus QD's; "
+             "blank where QD ran in another process or the composition spent other rollouts than QD."
              + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's "
                 "(blank where QD's curve was not run here).")
              + " Invalid: the share of all rollouts that were invalid (blank in files written before it)."
@@ -495,7 +529,8 @@ def main() -> None:
              "`model_share`, `steered` (rollouts per generation), `steering_share` and `validity_auc` (README, "
              "\"Metrics\"; AUC 0.5 = chance), averaged over seeds and the generations past warm-up.",
              ""]
-    header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality", "final coverage",
+    header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality",
+              "quality on QD's niches", "final coverage",
               "rollouts", "ms/gen", "x QD", "invalid", "opener AUC", "model share", "steered", "steering share",
               "validity AUC"]
     for task, by in curves.items():
@@ -506,7 +541,8 @@ def main() -> None:
         lines.append("")
     report.write(lines, args.out)
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
-        json.dump(curves, f)
+        json.dump({task: {name: {k: v for k, v in c.items() if k != SKILLS} for name, c in by.items()}
+                   for task, by in curves.items()}, f)
     figure = _figure(curves, args.figure or figure_path(args.out))
     if figure:
         print(figure)

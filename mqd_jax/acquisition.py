@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from mqd_jax import neighbours as neighbours_lib
@@ -194,7 +195,7 @@ def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
 
 
 def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,
-                   neighbours: int = 1, parent_weight: float = 0.0) -> jax.Array:
+                   neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0) -> jax.Array:
     """[num] pool rows chosen one at a time against an imagined repertoire; the first chosen first.
 
     Each step takes, among the candidates not yet chosen, first those the
@@ -208,6 +209,14 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     the largest predicted quality improvement over that nearest behavior. In
     each of these tiers the candidates judged likely usable (`Judged.plausible`)
     come first. NaN predictions come last.
+
+    m = round(`quality_share` x num) of the steps, spread evenly over the batch
+    (step i is one where (i + 1) m // num > i m // num, so that a prefix of the
+    rows holds its share of them too), are quality steps: they take first the
+    candidates predicted not to open a niche but to beat the quality of their
+    nearest behavior, by the largest predicted improvement, and only then the
+    others as above. Without them, a rule that always finds enough predicted
+    openers never spends a rollout on a better skill for a niche it holds.
     """
     columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
     if neighbours > 1 and columns < neighbours:
@@ -220,15 +229,19 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     near = judged.distance[:, None] if neighbours == 1 else judged.neighbours[:, :neighbours]  # [N, M] ascending
     factor = parent_factor(judged, parent_weight)
 
-    def choose(carry: tuple[jax.Array, jax.Array, jax.Array], _: None) -> tuple[tuple[jax.Array, ...], jax.Array]:
+    def choose(carry: tuple[jax.Array, jax.Array, jax.Array],
+               quality_step: jax.Array) -> tuple[tuple[jax.Array, ...], jax.Array]:
         near, nearest_quality, free = carry
         opens = finite & (near[:, 0] + optimism > t_dist)
+        improves = finite & ~opens & (q > nearest_quality)
         known = jnp.isfinite(near)
         count = known.sum(axis=1)
         mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
+        # A quality step prefers the improvers (by their improvement, as non-openers are ranked anyway).
+        preferred = jnp.where(quality_step, improves, opens)
         value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, (mean + optimism) * factor, q - nearest_quality)),
                           -jnp.inf)
-        tier = jnp.where(free, 4 * wanted.astype(jnp.int32) + 2 * opens.astype(jnp.int32)
+        tier = jnp.where(free, 4 * wanted.astype(jnp.int32) + 2 * preferred.astype(jnp.int32)
                          + plausible.astype(jnp.int32), -1)
         best = tier == tier.max()
         pick = jnp.argmax(jnp.where(best, value, -jnp.inf))
@@ -244,7 +257,9 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
                 free.at[pick].set(False)), pick
 
     start = (near, judged.nearest_quality, jnp.ones_like(wanted))
-    _, rows = jax.lax.scan(choose, start, None, length=num, unroll=4)
+    steps, quality_count = np.arange(num), round(quality_share * num)
+    quality_steps = jnp.asarray((steps + 1) * quality_count // num > steps * quality_count // num)
+    _, rows = jax.lax.scan(choose, start, quality_steps, unroll=4)
     return rows
 
 
@@ -253,12 +268,14 @@ class Diverse:
     """Batch-diverse optimistic ranking: of `pool_factor` x num candidates, roll out num chosen one at a time
     (`greedy_diverse`, optimism `beta` x the ensemble's spread, ranked by the mean distance to the `neighbours`
     nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`; times the parent's relative
-    novelty to the power `parent_weight`: 0, not read); during warm-up the pool's first num."""
+    novelty to the power `parent_weight`: 0, not read; a `quality_share` of the steps prefer predicted quality
+    improvements of held niches); during warm-up the pool's first num."""
 
     pool_factor: int = 8
     beta: float = 1.0
     neighbours: int = 1
     parent_weight: float = 0.0
+    quality_share: float = 0.0
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
@@ -270,6 +287,9 @@ class Diverse:
         if not (isinstance(self.parent_weight, (int, float)) and not isinstance(self.parent_weight, bool)
                 and self.parent_weight >= 0 and math.isfinite(self.parent_weight)):
             raise ValueError(f"Diverse.parent_weight={self.parent_weight!r} is invalid: expected a finite float >= 0")
+        if not (isinstance(self.quality_share, (int, float)) and not isinstance(self.quality_share, bool)
+                and 0 <= self.quality_share <= 1):
+            raise ValueError(f"Diverse.quality_share={self.quality_share!r} is invalid: expected a float in [0, 1]")
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
@@ -278,7 +298,8 @@ class Diverse:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
-        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight)
+        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
+                             self.quality_share)
         return _after_warm_up(top, wanted, warm_up, num)
 
 

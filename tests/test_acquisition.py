@@ -42,23 +42,28 @@ def judged(behaviors, qualities, rep, spread=None, k=5, validity=None):
 
 
 def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours, plausible=None,
-                     parent_novelty=None):
+                     parent_novelty=None, quality_share=0.0):
     """greedy_diverse written out: each step scores every free candidate against the repertoire's skills and the
     wanted candidates chosen so far; a predicted opener's distance times its parent's novelty over the pool's
-    mean (1 without a parent)."""
+    mean (1 without a parent); with m = round(quality_share * num), the steps ceil(j * num / m) - 1 for j = 1..m
+    prefer non-openers that beat their nearest skill's quality."""
     plausible = np.ones(len(b), bool) if plausible is None else plausible
     factor = np.ones(len(b)) if parent_novelty is None else np.where(
         np.isnan(parent_novelty), 1.0, parent_novelty / np.nanmean(parent_novelty))
     imagined_b, imagined_q = list(skills), list(skill_qualities)
     free, rows = np.ones(len(b), bool), []
-    for _ in range(num):
+    m = round(quality_share * num)
+    quality_steps = {-(-j * num // m) - 1 for j in range(1, m + 1)}
+    for step in range(num):
         best = None
         for i in np.flatnonzero(free):
             d = np.linalg.norm(np.asarray(imagined_b) - b[i], axis=1)
             near = np.sort(d)[:neighbours]
             opens = near[0] + beta * spread[i] > t_dist
-            value = (near.mean() + beta * spread[i]) * factor[i] if opens else q[i] - imagined_q[int(np.argmin(d))]
-            rank = (bool(wanted[i]), bool(opens), bool(plausible[i]), value)
+            improvement = q[i] - imagined_q[int(np.argmin(d))]
+            value = (near.mean() + beta * spread[i]) * factor[i] if opens else improvement
+            preferred = (not opens and improvement > 0) if step in quality_steps else opens
+            rank = (bool(wanted[i]), bool(preferred), bool(plausible[i]), value)
             if best is None or rank > best[0]:
                 best = (rank, i)
         pick = best[1]
@@ -70,17 +75,17 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
     return rows
 
 
-@pytest.mark.parametrize("neighbours, skills, judge_validity, parents", [
-    (1, 6, False, False), (3, 6, False, False), (3, 2, False, False), (1, 6, True, False), (1, 6, False, True),
-    (3, 6, True, True)])
-def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, parents):
+@pytest.mark.parametrize("neighbours, skills, judge_validity, parents, quality_share", [
+    (1, 6, False, False, 0.0), (3, 6, False, False, 0.0), (3, 2, False, False, 0.0), (1, 6, True, False, 0.0),
+    (1, 6, False, True, 0.0), (3, 6, True, True, 0.0), (1, 6, False, False, 0.3), (3, 16, True, True, 0.5)])
+def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, parents, quality_share):
     """Random pools: the scan's choice equals the rule written out, for the nearest distance and for the mean of
     the 3 nearest (also with fewer skills than that: the mean over those there are), with a validity
-    judgement (likely unusable candidates after the others of their tier) and with the parents' novelty
-    (parent_weight 1; some candidates without a parent)."""
+    judgement (likely unusable candidates after the others of their tier), with the parents' novelty
+    (parent_weight 1; some candidates without a parent) and with quality steps."""
     key = jax.random.split(jax.random.PRNGKey(neighbours + skills), 4)
     rep = repertoire_of(np.asarray(jax.random.uniform(key[0], (skills, 2))),
-                        np.asarray(jax.random.uniform(key[1], (skills,))))
+                        np.asarray(jax.random.uniform(key[1], (skills,))), capacity=16)
     b = np.asarray(jax.random.uniform(key[2], (30, 2)))
     q = np.asarray(jax.random.uniform(key[3], (30,)))
     spread = np.linspace(0.0, 0.05, 30).astype(np.float32)
@@ -92,10 +97,11 @@ def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, 
         parent_novelty = np.array(jax.random.uniform(jax.random.PRNGKey(8), (30,)), np.float32)
         parent_novelty[::7] = np.nan
         pool = pool.replace(parent_novelty=jnp.asarray(parent_novelty))
-    rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours, float(parents))
+    rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours, float(parents),
+                          quality_share)
     expected = greedy_reference(b, q, spread, np.asarray(rep.behaviors[:skills]), np.asarray(rep.qualities[:skills]),
                                 wanted, 0.1, 0.5, 12, neighbours, None if validity is None else validity >= 0.5,
-                                parent_novelty)
+                                parent_novelty, quality_share)
     np.testing.assert_array_equal(rows, expected)
     if parents:  # weight 0: the parents' novelty is not read
         np.testing.assert_array_equal(greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours),
@@ -262,6 +268,14 @@ def test_greedy_diverse_by_hand():
     # predicted improvement over the nearest imagined or real skill: 3 (+0.4 over the skill), 1 (0.0 over 0's
     # imagined skill), 4 (-0.3).
     np.testing.assert_array_equal(rows, [0, 2, 3, 1, 4])
+    # Three quality steps of five, the second, fourth and fifth: the second takes the improver 3 before the opener
+    # 2; the fourth finds no improver left (1 only equals 0's imagined quality, 4 is below the skill's) and takes
+    # the best of the rest.
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 5, quality_share=0.6),
+                                  [0, 3, 2, 1, 4])
+    # All quality steps: the improver first, then the openers (farthest first), then the rest.
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 5, quality_share=1.0),
+                                  [3, 0, 2, 1, 4])
     # Budgeted ranking has no imagined skills: both duplicates before 2.
     ranked = Budgeted(1).select(pool.replace(novelty=jnp.array([1.0, 0.99, 0.8, 0.0, 0.001]),
                                              improvement=jnp.array([-0.4, -0.4, -0.4, 0.4, -0.3])),
