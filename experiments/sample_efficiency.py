@@ -466,7 +466,9 @@ def main() -> None:
                         "seeds")
     parser.add_argument("--baseline", nargs="+", default=[], metavar="JSON",
                         help="take QD's curves (which no model change touches) from these earlier outputs of this "
-                        "script (NAME.json beside NAME.md, which names its machine and seeds) instead of running QD")
+                        "script (NAME.json beside NAME.md, which names its machine and seeds) instead of running QD; "
+                        "on a contact task a file from an earlier version may hold another draw of QD's runs "
+                        "(docs/results.md, 'Quality on QD's niches')")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
