@@ -309,6 +309,10 @@ def configured(spec: str, cfg: Config) -> Config:
     return cfg
 
 
+# Each seed's final skills (behaviors [n, d], qualities [n]) of a run made here: not written to the JSON (large).
+SKILLS = "final_skills"
+
+
 def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str, Any]:
     cfg = configured(spec, Config.paper(task, **({} if generations is None else {"max_generations": generations})))
     compiled = {}
@@ -322,10 +326,6 @@ def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str,
     return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms, SKILLS: skills, "t_dist": cfg.t_dist}
 
 
-# Each seed's final skills (behaviors [n, d], qualities [n]) of a run made here: not written to the JSON (large).
-SKILLS = "final_skills"
-
-
 def quality_on_shared_niches(skills: list[tuple[np.ndarray, np.ndarray]],
                              qd_skills: list[tuple[np.ndarray, np.ndarray]], t_dist: float) -> tuple[float, float]:
     """The mean over seeds of the mean quality difference, over QD's final skills that have one of the
@@ -334,12 +334,19 @@ def quality_on_shared_niches(skills: list[tuple[np.ndarray, np.ndarray]],
     hard niches scores lower with skills as good where both hold one); this compares like with like."""
     gaps, shares = [], []
     for (b, q), (qd_b, qd_q) in zip(skills, qd_skills, strict=True):
-        d = np.linalg.norm(qd_b[:, None, :] - b[None, :, :], axis=-1)  # [QD's skills, the composition's]
-        nearest = d.argmin(axis=1)
-        shared = d[np.arange(len(qd_b)), nearest] <= t_dist
-        gaps.append(np.mean(q[nearest[shared]] - qd_q[shared]))
+        if len(b) == 0 or len(qd_b) == 0:
+            gaps.append(np.nan)
+            shares.append(0.0)
+            continue
+        # The nearest of the composition's skills to each of QD's, in blocks of QD's skills (bounded memory).
+        nearest = np.concatenate([np.linalg.norm(block[:, None, :] - b[None, :, :], axis=-1).argmin(axis=1)
+                                  for block in np.array_split(qd_b, -(-len(qd_b) // 1024))])
+        shared = np.linalg.norm(b[nearest] - qd_b, axis=1) <= t_dist
+        gaps.append(np.mean(q[nearest[shared]] - qd_q[shared]) if shared.any() else np.nan)
         shares.append(shared.mean())
-    return float(np.mean(gaps)), float(np.mean(shares))
+    with warnings.catch_warnings():  # no seed with a shared niche: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return float(np.nanmean(gaps)), float(np.mean(shares))
 
 
 # The model's diagnostics (README, "Metrics"), averaged over seeds and the generations past warm-up.

@@ -309,7 +309,9 @@ def test_diverse_selects_num_distinct_rows_and_passes_warm_up_through():
 @pytest.mark.parametrize("kw, field", [(dict(pool_factor=0), "pool_factor"), (dict(beta=-1.0), "beta"),
                                        (dict(beta=float("nan")), "beta"), (dict(neighbours=0), "neighbours"),
                                        (dict(parent_weight=-1.0), "parent_weight"),
-                                       (dict(parent_weight=True), "parent_weight")])
+                                       (dict(parent_weight=True), "parent_weight"),
+                                       (dict(quality_share=1.5), "quality_share"),
+                                       (dict(quality_share=float("nan")), "quality_share")])
 def test_diverse_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Diverse.{field}="):
         Diverse(**kw)
