@@ -47,9 +47,11 @@ import numpy as np
 import report
 
 from mqd_jax import Config, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Validity, presets, registry, results
+from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.acquisition import Budgeted, Diverse
 from mqd_jax.config import Params
 from mqd_jax.model_emitter import ModelEmitterState
+from mqd_jax.repertoire import Repertoire
 from mqd_jax.sweep import run_batch, seed_keys
 from mqd_jax.task import Task
 
@@ -309,7 +311,7 @@ def configured(spec: str, cfg: Config) -> Config:
     return cfg
 
 
-# Each seed's final skills (behaviors [n, d], qualities [n]) of a run made here: not written to the JSON (large).
+# Each seed's final repertoire of a run made here: not written to the JSON (large).
 SKILLS = "final_skills"
 
 
@@ -321,29 +323,24 @@ def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str,
                                 on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
     ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
     print(f"{task} {spec}: {time.perf_counter() - start:.0f} s", flush=True)
-    rep = jax.device_get(states.repertoire)
-    skills = [(rep.behaviors[i, :n], rep.qualities[i, :n]) for i, n in enumerate(rep.count)]
+    skills = [jax.tree.map(lambda x, i=i: x[i], states.repertoire) for i in range(seeds)]
     return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms, SKILLS: skills, "t_dist": cfg.t_dist}
 
 
-def quality_on_shared_niches(skills: list[tuple[np.ndarray, np.ndarray]],
-                             qd_skills: list[tuple[np.ndarray, np.ndarray]], t_dist: float) -> tuple[float, float]:
+def quality_on_shared_niches(skills: list[Repertoire], qd_skills: list[Repertoire],
+                             t_dist: float) -> tuple[float, float]:
     """The mean over seeds of the mean quality difference, over QD's final skills that have one of the
     composition's (same seed) within `t_dist`, of the nearest such skill's quality minus QD's; and the mean share
     of QD's skills that have one. A mean quality compares repertoires of different niches (one that holds more far,
     hard niches scores lower with skills as good where both hold one); this compares like with like."""
     gaps, shares = [], []
-    for (b, q), (qd_b, qd_q) in zip(skills, qd_skills, strict=True):
-        if len(b) == 0 or len(qd_b) == 0:
-            gaps.append(np.nan)
-            shares.append(0.0)
-            continue
-        # The nearest of the composition's skills to each of QD's, in blocks of QD's skills (bounded memory).
-        nearest = np.concatenate([np.linalg.norm(block[:, None, :] - b[None, :, :], axis=-1).argmin(axis=1)
-                                  for block in np.array_split(qd_b, -(-len(qd_b) // 1024))])
-        shared = np.linalg.norm(b[nearest] - qd_b, axis=1) <= t_dist
-        gaps.append(np.mean(q[nearest[shared]] - qd_q[shared]) if shared.any() else np.nan)
-        shares.append(shared.mean())
+    for rep, qd in zip(skills, qd_skills, strict=True):
+        qd_b, qd_q = np.asarray(qd.behaviors[:qd.count]), np.asarray(qd.qualities[:qd.count])
+        sq_distance, slot = repertoire_lib.nearest(rep, rep.behaviors, qd_b)  # inf where rep is empty
+        shared = np.asarray(sq_distance) <= t_dist ** 2
+        gaps.append(np.mean(np.asarray(rep.qualities)[np.asarray(slot)[shared]] - qd_q[shared])
+                    if shared.any() else np.nan)
+        shares.append(shared.mean() if len(qd_b) else 0.0)
     with warnings.catch_warnings():  # no seed with a shared niche: NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         return float(np.nanmean(gaps)), float(np.mean(shares))
