@@ -241,6 +241,9 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     **{f"mqd-quality-share-{s:g}": lambda cfg, s=s: _replaced(acquisition=Diverse(
         cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=s))(cfg)
        for s in (0.1, 0.2, 0.3)},
+    **{f"mqd-quality-share-0.2-margin-{m:g}": lambda cfg, m=m: _replaced(acquisition=Diverse(
+        cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=0.2, quality_margin=m))(cfg)
+       for m in (0.25, 0.5, 1.0)},
     "mqd-two-scales": _replaced(inner=MultiScaleIsoLine()),
     "mqd-two-scales-half": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 0.5))),
     "mqd-two-scales-wide": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 2.0))),

@@ -195,7 +195,8 @@ def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
 
 
 def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,
-                   neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0) -> jax.Array:
+                   neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0,
+                   quality_margin: float | jax.Array = 0.0) -> jax.Array:
     """[num] pool rows chosen one at a time against an imagined repertoire; the first chosen first.
 
     Each step takes, among the candidates not yet chosen, first those the
@@ -214,8 +215,8 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     (step i is one where (i + 1) m // num > i m // num, so that a prefix of the
     rows holds its share of them too), are quality steps: they take first the
     candidates predicted not to open a niche but to beat the quality of their
-    nearest behavior, by the largest predicted improvement, and only then the
-    others as above. Without them, a rule that always finds enough predicted
+    nearest behavior by more than `quality_margin` (quality units), by the largest predicted improvement, and
+    only then the others as above. Without them, a rule that always finds enough predicted
     openers never spends a rollout on a better skill for a niche it holds.
     """
     columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
@@ -233,7 +234,7 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
                quality_step: jax.Array) -> tuple[tuple[jax.Array, ...], jax.Array]:
         near, nearest_quality, free = carry
         opens = finite & (near[:, 0] + optimism > t_dist)
-        improves = finite & ~opens & (q > nearest_quality)
+        improves = finite & ~opens & (q - nearest_quality > quality_margin)
         known = jnp.isfinite(near)
         count = known.sum(axis=1)
         mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
@@ -269,13 +270,15 @@ class Diverse:
     (`greedy_diverse`, optimism `beta` x the ensemble's spread, ranked by the mean distance to the `neighbours`
     nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`; times the parent's relative
     novelty to the power `parent_weight`: 0, not read; a `quality_share` of the steps prefer predicted quality
-    improvements of held niches); during warm-up the pool's first num."""
+    improvements of held niches larger than `quality_margin` x the standard deviation of the repertoire's
+    qualities); during warm-up the pool's first num."""
 
     pool_factor: int = 8
     beta: float = 1.0
     neighbours: int = 1
     parent_weight: float = 0.0
     quality_share: float = 0.0
+    quality_margin: float = 0.0
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
@@ -290,6 +293,10 @@ class Diverse:
         if not (isinstance(self.quality_share, (int, float)) and not isinstance(self.quality_share, bool)
                 and 0 <= self.quality_share <= 1):
             raise ValueError(f"Diverse.quality_share={self.quality_share!r} is invalid: expected a float in [0, 1]")
+        if not (isinstance(self.quality_margin, (int, float)) and not isinstance(self.quality_margin, bool)
+                and self.quality_margin >= 0 and math.isfinite(self.quality_margin)):
+            raise ValueError(f"Diverse.quality_margin={self.quality_margin!r} is invalid: expected a finite float "
+                             ">= 0")
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
@@ -298,8 +305,11 @@ class Diverse:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
+        margin = 0.0
+        if self.quality_margin:  # scale-free: in standard deviations of the repertoire's qualities
+            margin = self.quality_margin * jnp.std(repertoire.qualities, where=repertoire.valid)
         top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
-                             self.quality_share)
+                             self.quality_share, jnp.nan_to_num(margin))
         return _after_warm_up(top, wanted, warm_up, num)
 
 

@@ -42,11 +42,11 @@ def judged(behaviors, qualities, rep, spread=None, k=5, validity=None):
 
 
 def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta, num, neighbours, plausible=None,
-                     parent_novelty=None, quality_share=0.0):
+                     parent_novelty=None, quality_share=0.0, quality_margin=0.0):
     """greedy_diverse written out: each step scores every free candidate against the repertoire's skills and the
     wanted candidates chosen so far; a predicted opener's distance times its parent's novelty over the pool's
     mean (1 without a parent); with m = round(quality_share * num), the steps ceil(j * num / m) - 1 for j = 1..m
-    prefer non-openers that beat their nearest skill's quality."""
+    prefer non-openers that beat their nearest skill's quality by more than quality_margin."""
     plausible = np.ones(len(b), bool) if plausible is None else plausible
     factor = np.ones(len(b)) if parent_novelty is None else np.where(
         np.isnan(parent_novelty), 1.0, parent_novelty / np.nanmean(parent_novelty))
@@ -62,7 +62,7 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
             opens = near[0] + beta * spread[i] > t_dist
             improvement = q[i] - imagined_q[int(np.argmin(d))]
             value = (near.mean() + beta * spread[i]) * factor[i] if opens else improvement
-            preferred = (not opens and improvement > 0) if step in quality_steps else opens
+            preferred = (not opens and improvement > quality_margin) if step in quality_steps else opens
             rank = (bool(wanted[i]), bool(preferred), bool(plausible[i]), value)
             if best is None or rank > best[0]:
                 best = (rank, i)
@@ -75,14 +75,16 @@ def greedy_reference(b, q, spread, skills, skill_qualities, wanted, t_dist, beta
     return rows
 
 
-@pytest.mark.parametrize("neighbours, skills, judge_validity, parents, quality_share", [
-    (1, 6, False, False, 0.0), (3, 6, False, False, 0.0), (3, 2, False, False, 0.0), (1, 6, True, False, 0.0),
-    (1, 6, False, True, 0.0), (3, 6, True, True, 0.0), (1, 6, False, False, 0.3), (3, 16, True, True, 0.5)])
-def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, parents, quality_share):
+@pytest.mark.parametrize("neighbours, skills, judge_validity, parents, quality_share, quality_margin", [
+    (1, 6, False, False, 0.0, 0.0), (3, 6, False, False, 0.0, 0.0), (3, 2, False, False, 0.0, 0.0),
+    (1, 6, True, False, 0.0, 0.0), (1, 6, False, True, 0.0, 0.0), (3, 6, True, True, 0.0, 0.0),
+    (1, 6, False, False, 0.3, 0.0), (3, 16, True, True, 0.5, 0.0), (1, 16, False, False, 0.5, 0.2)])
+def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, parents, quality_share,
+                                            quality_margin):
     """Random pools: the scan's choice equals the rule written out, for the nearest distance and for the mean of
     the 3 nearest (also with fewer skills than that: the mean over those there are), with a validity
     judgement (likely unusable candidates after the others of their tier), with the parents' novelty
-    (parent_weight 1; some candidates without a parent) and with quality steps."""
+    (parent_weight 1; some candidates without a parent) and with quality steps (with and without a margin)."""
     key = jax.random.split(jax.random.PRNGKey(neighbours + skills), 4)
     rep = repertoire_of(np.asarray(jax.random.uniform(key[0], (skills, 2))),
                         np.asarray(jax.random.uniform(key[1], (skills,))), capacity=16)
@@ -98,10 +100,10 @@ def test_greedy_diverse_matches_a_reference(neighbours, skills, judge_validity, 
         parent_novelty[::7] = np.nan
         pool = pool.replace(parent_novelty=jnp.asarray(parent_novelty))
     rows = greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours, float(parents),
-                          quality_share)
+                          quality_share, jnp.float32(quality_margin))
     expected = greedy_reference(b, q, spread, np.asarray(rep.behaviors[:skills]), np.asarray(rep.qualities[:skills]),
                                 wanted, 0.1, 0.5, 12, neighbours, None if validity is None else validity >= 0.5,
-                                parent_novelty, quality_share)
+                                parent_novelty, quality_share, quality_margin)
     np.testing.assert_array_equal(rows, expected)
     if parents:  # weight 0: the parents' novelty is not read
         np.testing.assert_array_equal(greedy_diverse(pool, jnp.asarray(wanted), jnp.float32(0.1), 0.5, 12, neighbours),
@@ -306,12 +308,30 @@ def test_diverse_selects_num_distinct_rows_and_passes_warm_up_through():
     assert int(discarded) == 0
 
 
+def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qualities():
+    # Skills of quality 0.2 and 0.6 (standard deviation 0.2; an empty slot of quality 5 is not counted). Candidates
+    # 0 and 1 sit on the first skill, predicted 0.05 and 0.3 better; 2 opens a niche far away.
+    rep = repertoire_of([[0.0, 0.0], [1.0, 0.0]], [0.2, 0.6])
+    rep = rep.replace(qualities=rep.qualities.at[5].set(5.0))
+    pool = judged([[0.0, 0.0], [0.0, 0.001], [0.0, 1.0]], [0.25, 0.5, 0.0], rep)
+    params, wanted, warm = Config().params().replace(t_dist=jnp.float32(0.05)), jnp.ones(3, bool), jnp.bool_(False)
+    # One quality step of one: both beat the skill by more than 0.5 x 0.2 = 0.1? Only 1 (by 0.3); it goes first.
+    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=0.5).select(pool, rep, wanted, warm, params, 3)
+    np.testing.assert_array_equal(rows, [1, 2, 0])
+    # A margin of 2 x 0.2 = 0.4 leaves no improver preferred: the opener first, as without quality steps.
+    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=2.0).select(pool, rep, wanted, warm, params, 3)
+    np.testing.assert_array_equal(rows, Diverse(1, 0.0).select(pool, rep, wanted, warm, params, 3)[0])
+    assert int(rows[0]) == 2
+
+
 @pytest.mark.parametrize("kw, field", [(dict(pool_factor=0), "pool_factor"), (dict(beta=-1.0), "beta"),
                                        (dict(beta=float("nan")), "beta"), (dict(neighbours=0), "neighbours"),
                                        (dict(parent_weight=-1.0), "parent_weight"),
                                        (dict(parent_weight=True), "parent_weight"),
                                        (dict(quality_share=1.5), "quality_share"),
-                                       (dict(quality_share=float("nan")), "quality_share")])
+                                       (dict(quality_share=float("nan")), "quality_share"),
+                                       (dict(quality_margin=-0.1), "quality_margin"),
+                                       (dict(quality_margin=float("inf")), "quality_margin")])
 def test_diverse_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Diverse.{field}="):
         Diverse(**kw)
