@@ -207,7 +207,9 @@ class MultiScaleIsoLine(IsoLine):
 _HALF_TRAINING = _replaced(num_batches=250)
 _WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
 
-# name -> the config's algorithm (a preset's name or an emitter built from the config), or a whole config.
+# name -> the config's algorithm (a preset's name or an emitter built from the config), or a whole config. A
+# composition built on the "mqd" preset takes the preset's other settings of today (since version 0.8 its quality
+# steps too), so a name that says "version 0.x's" means the setting it changes.
 COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "qd": lambda cfg: "qd",
     "mqd-paper": lambda cfg: "mqd-paper",
@@ -223,7 +225,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
-    # "mqd" since version 0.7; "mqd-distance-ranked" is 0.6's.
+    # "mqd" since version 0.7 (with 0.8's quality steps); "mqd-distance-ranked" is 0.6's ranking.
     "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0),
     "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
@@ -238,6 +240,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-voronoi-mutation-quarter": _replaced(steering=Steering(share=0.25, step="mutation")),
     "mqd-steered-mixed-quarter": _replaced(steering=MixedSteering(share=0.25)),
     "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
+    # "mqd" since version 0.8 is mqd-quality-share-0.1.
     **{f"mqd-quality-share-{s:g}": lambda cfg, s=s: _replaced(acquisition=Diverse(
         cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=s))(cfg)
        for s in (0.1, 0.2, 0.3)},

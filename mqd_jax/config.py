@@ -105,7 +105,7 @@ class Config:
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
     model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight; "mqd-paper":
+    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight, quality_share; "mqd-paper":
     t_nov, t_qua, budgeted) configure the model presets; a composed emitter carries its own
     settings.
     """
@@ -155,6 +155,9 @@ class Config:
     # "mqd": the exponent of a predicted opener's parent's relative novelty in its rank (acquisition.Diverse's
     # parent_weight; 0 = the predicted distance alone, version 0.6's "mqd").
     parent_weight: float = 1.0
+    # "mqd": the share of the rule's choices that go first to predicted quality gains in held niches
+    # (acquisition.Diverse's quality_share; 0 = none, version 0.7's "mqd").
+    quality_share: float = 0.1
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate
     # exactly `population_size` of them (see acquisition.Budgeted).
@@ -191,6 +194,8 @@ class Config:
                f"False unless algorithm='mqd-paper' (it is {self.algorithm!r})")
         _check(_is_real(self.steering_share) and 0 <= self.steering_share < 1, "steering_share", self.steering_share,
                "a float in [0, 1)")
+        _check(_is_real(self.quality_share) and 0 <= self.quality_share <= 1, "quality_share", self.quality_share,
+               "a float in [0, 1]")
         _check(self.anchor in ANCHORS, "anchor", self.anchor, f"one of {ANCHORS}")
         pool = self.pool_factor * self.population_size
         steered = round(self.steering_share * pool)
@@ -284,7 +289,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
     defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer; before version
     0.6 (configs without `anchor`) it anchored at the nearest skill; before version 0.7 (configs without
-    `parent_weight`) it ranked predicted openers by their distance alone."""
+    `parent_weight`) it ranked predicted openers by their distance alone; before version 0.8 (configs without
+    `quality_share`) it made no quality steps."""
     saved = dict(saved)
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
@@ -298,6 +304,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
         saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else Config.anchor
     if "parent_weight" not in saved:  # before version 0.7 "mqd" ranked by the predicted distance alone
         saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else Config.parent_weight
+    if "quality_share" not in saved:  # before version 0.8 "mqd" made no quality steps
+        saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.quality_share
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}

@@ -393,12 +393,15 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5,
                steering_share=0.3)
     assert presets.emitter(cfg) == ModelEmitter(
-        IsoLine(), Diverse(3, 0.5, parent_weight=1.0), k=cfg.k, hidden_size=cfg.hidden_size, ensemble_size=2,
-        batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", anchor="parent",
+        IsoLine(), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1), k=cfg.k, hidden_size=cfg.hidden_size,
+        ensemble_size=2, batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", anchor="parent",
         fallback=Fallback(), steering=Steering(share=0.3))
     assert presets.emitter(dataclasses.replace(cfg, anchor="nearest")).anchor == "nearest"  # version 0.5's
     assert presets.emitter(dataclasses.replace(cfg, steering_share=0.0)).steering is None  # version 0.4's "mqd"
-    assert presets.emitter(dataclasses.replace(cfg, parent_weight=0.0)).acquisition == Diverse(3, 0.5)  # 0.6's
+    assert presets.emitter(dataclasses.replace(cfg, quality_share=0.0)).acquisition == Diverse(
+        3, 0.5, parent_weight=1.0)  # 0.7's
+    assert presets.emitter(dataclasses.replace(cfg, parent_weight=0.0, quality_share=0.0)).acquisition == Diverse(
+        3, 0.5)  # 0.6's
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
     np.testing.assert_array_equal(m["evaluations"], pop)
@@ -439,22 +442,30 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
 
 
 def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor_at_the_nearest_skill():
-    """... and before 0.7 rank predicted openers by their distance alone."""
+    """... before 0.7 rank predicted openers by their distance alone and before 0.8 make no quality steps."""
     default = Config()
-    for algorithm, share, anchor, weight in (
-            ("mqd", 0.0, "nearest", 0.0), ("qd", default.steering_share, default.anchor, default.parent_weight),
-            ("mqd-paper", default.steering_share, default.anchor, default.parent_weight)):
+    for algorithm, share, anchor, weight, quality in (
+            ("mqd", 0.0, "nearest", 0.0, 0.0),
+            ("qd", default.steering_share, default.anchor, default.parent_weight, default.quality_share),
+            ("mqd-paper", default.steering_share, default.anchor, default.parent_weight, default.quality_share)):
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["steering_share"], saved["anchor"], saved["parent_weight"]  # version 0.4's
+        del saved["steering_share"], saved["anchor"], saved["parent_weight"], saved["quality_share"]  # 0.4's
         assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share, anchor=anchor,
-                                                 parent_weight=weight)
+                                                 parent_weight=weight, quality_share=quality)
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["anchor"], saved["parent_weight"]  # version 0.5's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor, parent_weight=weight)
+        del saved["anchor"], saved["parent_weight"], saved["quality_share"]  # version 0.5's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor, parent_weight=weight,
+                                                 quality_share=quality)
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["parent_weight"]  # version 0.6's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, parent_weight=weight)
+        del saved["parent_weight"], saved["quality_share"]  # version 0.6's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, parent_weight=weight, quality_share=quality)
+        saved = Config(algorithm=algorithm).to_dict()
+        del saved["quality_share"]  # version 0.7's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, quality_share=quality)
     assert Config().steering_share == 0.25 and presets.emitter(Config(algorithm="mqd")).steering == Steering(0.25)
+    # The preset's rule reads the config's quality share.
+    assert presets.emitter(Config(algorithm="mqd")).acquisition.quality_share == 0.1
+    assert presets.emitter(Config(algorithm="mqd", quality_share=0.3)).acquisition.quality_share == 0.3
 
 
 def test_configs_saved_before_version_0_3_name_the_papers_filter():

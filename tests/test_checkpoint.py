@@ -39,6 +39,9 @@ def crash_after(chunks):
     return on_chunk
 
 
+# Resumed and uninterrupted runs are different programs: with the elemental emitters they may round a float32
+# differently (conftest.py), which a quality step's comparison of predicted qualities can tell apart.
+@pytest.mark.fusion_emitters
 def test_a_resumed_run_equals_the_uninterrupted_one(tmp_path, uninterrupted):
     path = str(tmp_path / "run.ckpt")
     with pytest.raises(Crash):
