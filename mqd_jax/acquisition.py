@@ -215,9 +215,10 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     (step i is one where (i + 1) m // num > i m // num, so that a prefix of the
     rows holds its share of them too), are quality steps: they take first the
     candidates predicted not to open a niche but to beat the quality of their
-    nearest behavior by more than `quality_margin` (quality units), by the largest predicted improvement, and
-    only then the others as above. Without them, a rule that always finds enough predicted
-    openers never spends a rollout on a better skill for a niche it holds.
+    nearest behavior by more than `quality_margin` (quality units), by the
+    largest predicted improvement, and only then the others as above. Without
+    them, a rule that always finds enough predicted openers never spends a
+    rollout on a better skill for a niche it holds.
     """
     columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
     if neighbours > 1 and columns < neighbours:
@@ -306,7 +307,7 @@ class Diverse:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
         margin = 0.0
-        if self.quality_margin:  # scale-free: in standard deviations of the repertoire's qualities
+        if self.quality_margin:  # scale-free: in standard deviations of the repertoire's qualities (0 while empty)
             margin = self.quality_margin * jnp.std(repertoire.qualities, where=repertoire.valid)
         top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
                              self.quality_share, jnp.nan_to_num(margin))
