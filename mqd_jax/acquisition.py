@@ -283,21 +283,16 @@ class Diverse:
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
-        if not (isinstance(self.beta, (int, float)) and not isinstance(self.beta, bool) and self.beta >= 0
-                and math.isfinite(self.beta)):
-            raise ValueError(f"Diverse.beta={self.beta!r} is invalid: expected a finite float >= 0")
+        for name in ("beta", "parent_weight", "quality_margin"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
+                    and math.isfinite(value)):
+                raise ValueError(f"Diverse.{name}={value!r} is invalid: expected a finite float >= 0")
         if not (isinstance(self.neighbours, int) and not isinstance(self.neighbours, bool) and self.neighbours >= 1):
             raise ValueError(f"Diverse.neighbours={self.neighbours!r} is invalid: expected an int >= 1")
-        if not (isinstance(self.parent_weight, (int, float)) and not isinstance(self.parent_weight, bool)
-                and self.parent_weight >= 0 and math.isfinite(self.parent_weight)):
-            raise ValueError(f"Diverse.parent_weight={self.parent_weight!r} is invalid: expected a finite float >= 0")
         if not (isinstance(self.quality_share, (int, float)) and not isinstance(self.quality_share, bool)
                 and 0 <= self.quality_share <= 1):
             raise ValueError(f"Diverse.quality_share={self.quality_share!r} is invalid: expected a float in [0, 1]")
-        if not (isinstance(self.quality_margin, (int, float)) and not isinstance(self.quality_margin, bool)
-                and self.quality_margin >= 0 and math.isfinite(self.quality_margin)):
-            raise ValueError(f"Diverse.quality_margin={self.quality_margin!r} is invalid: expected a finite float "
-                             ">= 0")
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
