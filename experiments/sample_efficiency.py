@@ -208,8 +208,8 @@ _HALF_TRAINING = _replaced(num_batches=250)
 _WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
 
 # name -> the config's algorithm (a preset's name or an emitter built from the config), or a whole config. A
-# composition built on the "mqd" preset takes the preset's other settings of today (since version 0.8 its quality
-# steps too), so a name that says "version 0.x's" means the setting it changes.
+# composition built on the "mqd" preset takes the preset's settings of today but those it changes; one that stands
+# for an earlier version's "mqd" changes every setting that version lacked.
 COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "qd": lambda cfg: "qd",
     "mqd-paper": lambda cfg: "mqd-paper",
@@ -219,21 +219,22 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-no-fallback": _replaced(fallback=None),
     "mqd-not-anchored": _replaced(anchoring="none"),
     "mqd-always-anchored": _replaced(anchoring="always"),
-    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest", parent_weight=0.0),  # "mqd" of version 0.5
+    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest", parent_weight=0.0, quality_share=0.0),  # 0.5's
     "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
     "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
     **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
-    # "mqd" since version 0.7 (with 0.8's quality steps); "mqd-distance-ranked" is 0.6's ranking.
-    "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0),
-    "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0),
+    # "mqd" of version 0.7; "mqd-distance-ranked" is 0.6's.
+    "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0, quality_share=0.0),
+    "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0, quality_share=0.0),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),
     # "mqd" since version 0.5 (anchored at the parent since 0.6, as every composition built on the preset).
     "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
     **{f"mqd-quality-{q:g}": _replaced(steering=Steering(share=0.25, quality=q)) for q in (0.5, 1.0, 2.0)},
-    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest", parent_weight=0.0),  # 0.4's
+    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest", parent_weight=0.0,
+                           quality_share=0.0),  # 0.4's
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
     "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
