@@ -242,9 +242,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-steered-mixed-quarter": _replaced(steering=MixedSteering(share=0.25)),
     "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
     # "mqd" since version 0.8 is mqd-quality-share-0.1.
-    **{f"mqd-quality-share-{s:g}": lambda cfg, s=s: _replaced(acquisition=Diverse(
-        cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=s))(cfg)
-       for s in (0.1, 0.2, 0.3)},
+    **{f"mqd-quality-share-{s:g}": _with(lambda cfg: "mqd", quality_share=s) for s in (0.1, 0.2, 0.3)},
     **{f"mqd-quality-share-0.2-margin-{m:g}": lambda cfg, m=m: _replaced(acquisition=Diverse(
         cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=0.2, quality_margin=m))(cfg)
        for m in (0.25, 0.5, 1.0)},
