@@ -69,8 +69,8 @@ def _linear_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
     rep = state.repertoire
 
     def jacobian(a: jax.Array, b: jax.Array) -> jax.Array:
-        d = neighbours.sq_dists(model.normalize_actions(rep.actions, task), model.normalize_actions(a, task))
-        found, idx = neighbours.k_smallest_down(jnp.where(rep.valid[:, None], d, jnp.inf), cfg.k)
+        d = neighbours.sq_dists(model.normalize_actions(a, task), model.normalize_actions(rep.actions, task))
+        found, idx = neighbours.k_smallest(jnp.where(rep.valid[None], d, jnp.inf), cfg.k)
         keep = jnp.isfinite(found)[..., None]
         g = jnp.where(keep, rep.actions[jnp.maximum(idx, 0)] - a[:, None], 0.0)  # [G, K, n] = G^T
         bb = jnp.where(keep, rep.behaviors[jnp.maximum(idx, 0)] - b[:, None], 0.0)  # [G, K, d] = B^T

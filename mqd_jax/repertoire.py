@@ -230,8 +230,8 @@ def k_nearest(rep: Repertoire, queries: jax.Array, k: int, min_prefix: int = 512
 def _nearest_before(num_near: int, size: int, rep: Repertoire, behaviors: jax.Array) -> tuple[jax.Array, jax.Array]:
     """[P, M] squared distances and slots of each candidate's M nearest skills, searched in the first `size` slots."""
     part = _prefix(rep, size, rep.capacity)
-    return neighbours.k_smallest_down(
-        jnp.where(part.valid[:, None], neighbours.sq_dists(part.behaviors, behaviors), jnp.inf), num_near)
+    return neighbours.k_smallest(jnp.where(part.valid[None], neighbours.sq_dists(behaviors, part.behaviors), jnp.inf),
+                                 num_near)
 
 
 def _apply(k: int, chunk: int, size: int, rep: Repertoire, behaviors: jax.Array, qualities: jax.Array,
