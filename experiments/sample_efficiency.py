@@ -14,7 +14,9 @@ presets `mqd sweep` wrote to those folders instead of running (the robot tasks, 
 
 For each task and composition, from the mean over seeds of coverage [G] and rollouts spent [G]:
   * rollouts to QD: the rollouts at which the mean coverage first reaches QD's final mean
-    coverage, as a fraction of QD's rollouts ("> x" if it never does: x = its own total);
+    coverage, as a fraction of QD's rollouts ("> x" if it never does: x = its own total), and
+    its 90% percentile bootstrap interval over seeds (the mean curve crosses late, where it is
+    flat, so this figure moves much more from seed to seed than the coverage does);
   * coverage after 25%, 50% and 100% of QD's rollouts (linear between generations);
   * mean quality of the repertoire after QD's rollouts;
   * ms per generation (the batch's wall time after compiling, per generation) and its ratio to QD's
@@ -46,7 +48,19 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import Config, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Validity, presets, registry, results
+from mqd_jax import (
+    Config,
+    Fallback,
+    Imagination,
+    IsoLine,
+    ModelEmitter,
+    Steering,
+    Validity,
+    presets,
+    registry,
+    results,
+    stats,
+)
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.acquisition import Budgeted, Diverse
 from mqd_jax.config import Params
@@ -356,9 +370,9 @@ DIAGNOSTICS = ("opener_auc", "model_share", "steered", "steering_share", "validi
 
 
 def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, Any]:
-    """Mean curves over seeds, each seed's final coverage, the share of all rollouts that were invalid, and the mean
-    of each model diagnostic the run has over the generations that began with `warmup_samples` rollouts or more
-    (NaN if none)."""
+    """Mean curves over seeds, each seed's rollouts and coverage curves [S, G] and final coverage, the share of all
+    rollouts that were invalid, and the mean of each model diagnostic the run has over the generations that began
+    with `warmup_samples` rollouts or more (NaN if none)."""
     evaluations = np.asarray(metrics["num_evaluations"], float)
     trained = np.pad(evaluations[:, :-1], ((0, 0), (1, 0))) >= warmup_samples  # [S, G]
     with warnings.catch_warnings():  # a run that never left warm-up averages to NaN
@@ -366,6 +380,9 @@ def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, An
         diagnostics = {name: float(np.nanmean(np.where(trained, np.asarray(metrics[name], float), np.nan)))
                        for name in DIAGNOSTICS if name in metrics}
     return {"rollouts": np.mean(metrics["num_evaluations"], 0).tolist(),
+            "seed_rollouts": np.asarray(metrics["num_evaluations"], float).tolist(),
+            # Rounded to 1e-6 (a cell of the coverage grid is 1.5e-5): the JSON stays a third of its size.
+            "seed_coverage": np.round(np.asarray(metrics["coverage"], float), 6).tolist(),
             "coverage": np.mean(metrics["coverage"], 0).tolist(),
             "mean_quality": np.mean(metrics["mean_quality"], 0).tolist(),
             "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist(),
@@ -377,6 +394,34 @@ def rollouts_to_reach(rollouts: np.ndarray, coverage: np.ndarray, target: float)
     """The rollouts [G] at the first generation whose coverage [G] reaches `target`, or None."""
     reached = np.asarray(coverage) >= target
     return float(np.asarray(rollouts)[np.argmax(reached)]) if reached.any() else None
+
+
+def rollouts_to_qd_interval(curve: dict[str, Any], qd: dict[str, Any],
+                            level: float = 0.9) -> tuple[float, float] | None:
+    """The percentile bootstrap interval (`stats.bootstrap_interval`, seeds resampled) of rollouts to QD as a
+    fraction of QD's rollouts (inf for a resample that never reaches QD's final coverage); QD's seeds are resampled
+    too where its curve has them, else its mean curve is held fixed. None without the composition's per-seed
+    curves (files written before them)."""
+    if "seed_coverage" not in curve:
+        return None
+
+    def seeds(c: dict[str, Any]) -> np.ndarray:
+        """[S, 2, G]: each seed's rollouts and coverage, resampled together."""
+        return np.stack([np.asarray(c["seed_rollouts"]), np.asarray(c["seed_coverage"])], axis=1)
+
+    def to_qd(runs: np.ndarray, qd_runs: np.ndarray | None = None) -> float:
+        qd_mean = np.asarray([qd["rollouts"], qd["coverage"]]) if qd_runs is None else qd_runs.mean(0)
+        mean = runs.mean(0)
+        reach = rollouts_to_reach(mean[0], mean[1], qd_mean[1, -1])
+        return np.inf if reach is None else reach / qd_mean[0, -1]
+
+    return stats.bootstrap_interval(to_qd, [seeds(curve), *([seeds(qd)] if "seed_coverage" in qd else [])], level)
+
+
+def _interval_text(interval: tuple[float, float] | None) -> str:
+    if interval is None:
+        return ""
+    return " - ".join(f"{end:.2f}" if np.isfinite(end) else "never" for end in interval)
 
 
 def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> list[str]:
@@ -396,7 +441,8 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
     if SKILLS in curve and SKILLS in qd and abs(curve["rollouts"][-1] - budget) < 0.5:
         gap, share = quality_on_shared_niches(curve[SKILLS], qd[SKILLS], curve["t_dist"])
         shared = f"{gap:+.3f} ({share:.2f})"
-    return [name, to_qd, *at, f"{quality:.3f}", shared, f"{final.mean():.3f} +- {final.std():.3f}",
+    return [name, to_qd, _interval_text(rollouts_to_qd_interval(curve, qd)), *at, f"{quality:.3f}", shared,
+            f"{final.mean():.3f} +- {final.std():.3f}",
             f"{curve['rollouts'][-1]:.0f}", *timing, *diagnostics]
 
 
@@ -528,7 +574,10 @@ def main() -> None:
              + (f" {', '.join(taken)}: from {', '.join(args.baseline)} (not run here; the machine and seeds are "
                 "in the .md beside it)." if taken else ""), "",
              "Rollouts to QD = fraction of QD's rollouts at which the mean coverage first reaches QD's final mean "
-             "coverage. Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
+             "coverage; its 90% interval: a percentile bootstrap over seeds (2000 resamples of the composition's "
+             "seeds and of QD's; QD's mean held fixed where its per-seed curves are not in its file; blank for "
+             "curves from files written before per-seed curves; \"never\": resamples that never reach it). "
+             "Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
              "final value). Quality = the repertoire's mean quality after QD's rollouts. Quality on QD's niches: "
              "over QD's final skills with one of the composition's final skills within t_dist (same seed; the share "
              "of QD's skills that have one in brackets), the mean of the nearest such skill's quality minus QD's; "
@@ -540,7 +589,7 @@ def main() -> None:
              "`model_share`, `steered` (rollouts per generation), `steering_share` and `validity_auc` (README, "
              "\"Metrics\"; AUC 0.5 = chance), averaged over seeds and the generations past warm-up.",
              ""]
-    header = ["composition", "rollouts to QD", "cov @25%", "cov @50%", "cov @100%", "quality",
+    header = ["composition", "rollouts to QD", "90% interval", "cov @25%", "cov @50%", "cov @100%", "quality",
               "quality on QD's niches", "final coverage",
               "rollouts", "ms/gen", "x QD", "invalid", "opener AUC", "model share", "steered", "steering share",
               "validity AUC"]
