@@ -162,6 +162,15 @@ def _replaced(**changes: Any) -> Callable[[Config], Any]:
     return _rebuilt(ModelEmitter, **changes)
 
 
+def _rule_replaced(**changes: Any) -> Callable[[Config], Any]:
+    """The "mqd" preset's emitter of a config, with some fields of its acquisition rule changed."""
+    def build(cfg: Config) -> Any:
+        rule = presets.emitter(dataclasses.replace(cfg, algorithm="mqd")).acquisition
+        return _replaced(acquisition=dataclasses.replace(rule, **changes))(cfg)
+
+    return build
+
+
 def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], Config]:
     """A composition run with some of the config's traced settings changed (the learning rate, say)."""
     return lambda cfg: dataclasses.replace(cfg, algorithm=build(cfg), **changes)
@@ -257,8 +266,7 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
     # "mqd" since version 0.8 is mqd-quality-share-0.1.
     **{f"mqd-quality-share-{s:g}": _with(lambda cfg: "mqd", quality_share=s) for s in (0.1, 0.2, 0.3)},
-    **{f"mqd-quality-share-0.2-margin-{m:g}": lambda cfg, m=m: _replaced(acquisition=Diverse(
-        cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=0.2, quality_margin=m))(cfg)
+    **{f"mqd-quality-share-0.2-margin-{m:g}": _rule_replaced(quality_share=0.2, quality_margin=m)
        for m in (0.25, 0.5, 1.0)},
     "mqd-two-scales": _replaced(inner=MultiScaleIsoLine()),
     "mqd-two-scales-half": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 0.5))),
