@@ -210,22 +210,6 @@ class MixedSteering(Steering):
         return jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
 
 
-@dataclasses.dataclass(frozen=True)
-class MultiScaleIsoLine(IsoLine):
-    """IsoLine whose children come in equal parts at several mutation scales (x params.iso_sigma and line_sigma),
-    the first part at `scales[0]`."""
-
-    scales: tuple[float, ...] = (1.0, 0.25)
-
-    def propose(self, key: jax.Array, state: Any, repertoire: Any, task: Task, params: Any, num: int) -> Any:
-        sizes = [num // len(self.scales) + (i < num % len(self.scales)) for i in range(len(self.scales))]
-        parts = [super(MultiScaleIsoLine, self).propose(
-            jax.random.fold_in(key, i), state, repertoire, task,
-            params.replace(iso_sigma=params.iso_sigma * scale, line_sigma=params.line_sigma * scale), size)
-            for i, (scale, size) in enumerate(zip(self.scales, sizes, strict=True))]
-        return jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
-
-
 # Cheaper training schedules: half the Adam steps; a quarter of the steps on 4x wider batches.
 _HALF_TRAINING = _replaced(num_batches=250)
 _WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
@@ -268,9 +252,9 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     **{f"mqd-quality-share-{s:g}": _with(lambda cfg: "mqd", quality_share=s) for s in (0.1, 0.2, 0.3)},
     **{f"mqd-quality-share-0.2-margin-{m:g}": _rule_replaced(quality_share=0.2, quality_margin=m)
        for m in (0.25, 0.5, 1.0)},
-    "mqd-two-scales": _replaced(inner=MultiScaleIsoLine()),
-    "mqd-two-scales-half": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 0.5))),
-    "mqd-two-scales-wide": _replaced(inner=MultiScaleIsoLine(scales=(1.0, 2.0))),
+    "mqd-two-scales": _replaced(inner=IsoLine(scales=(1.0, 0.25))),
+    "mqd-two-scales-half": _replaced(inner=IsoLine(scales=(1.0, 0.5))),
+    "mqd-two-scales-wide": _replaced(inner=IsoLine(scales=(1.0, 2.0))),
     "mqd-voronoi-mutation-half": _replaced(steering=Steering(share=0.5, step="mutation")),
     "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
     "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),

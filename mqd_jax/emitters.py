@@ -23,6 +23,7 @@ This module holds the protocol and the two emitters of the paper's baselines:
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -131,16 +132,41 @@ class IsoLine(Emitter):
 
     Uniform actions while the repertoire is empty; every candidate is rolled out. A child's `parents` entry is
     its first parent x1, from which the iso noise starts (-1 for a uniform action).
+
+    `scales` (finite floats > 0): the children come in equal parts (the first parts one larger where `num` does
+    not divide), part i with both steps times `scales[i]`, each part from its own key `fold_in(key, i)`. One
+    scale (the default, (1.0,), the paper's QD) draws from `key` itself.
     """
+
+    scales: tuple[float, ...] = (1.0,)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.scales, tuple) and self.scales and all(
+                isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s > 0
+                for s in self.scales)):
+            raise ValueError(f"IsoLine.scales={self.scales!r} is invalid: expected a non-empty tuple of finite "
+                             "floats > 0")
 
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
+        if len(self.scales) == 1:
+            return self._children(key, repertoire, task, params, self.scales[0], num)
+        sizes = [num // len(self.scales) + (i < num % len(self.scales)) for i in range(len(self.scales))]
+        parts = [self._children(jax.random.fold_in(key, i), repertoire, task, params, scale, size)
+                 for i, (scale, size) in enumerate(zip(self.scales, sizes, strict=True))]
+        return jax.tree.map(lambda *rows: jnp.concatenate(rows), *parts)
+
+    @staticmethod
+    def _children(key: jax.Array, repertoire: Repertoire, task: Task, params: Params, scale: float,
+                  num: int) -> Proposal:
+        """`num` children with both steps times `scale`."""
         low, high = action_bounds(task)
         _, k_parents, k_vary = jax.random.split(key, 3)
         fresh = variation.uniform(_uniform_key(key), num, low, high)
         parents = selection.sample_parents(k_parents, repertoire.novelty, repertoire.valid, 2 * num)
         x = repertoire.actions[parents].reshape(2, num, -1)
-        children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma, params.line_sigma, low, high)
+        children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma * scale, params.line_sigma * scale,
+                                      low, high)
         bred = repertoire.count > 0
         return Proposal(jnp.where(bred, children, fresh), jnp.ones(num, bool),
                         parents=jnp.where(bred, parents[:num], -1).astype(jnp.int32))

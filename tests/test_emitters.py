@@ -11,6 +11,8 @@ import pytest
 
 from mqd_jax import Budgeted, Config, Emitter, IsoLine, ModelEmitter, Proposal, Threshold, Uniform, presets, run_mqd
 from mqd_jax.acquisition import Judged
+from mqd_jax.emitters import action_bounds
+from mqd_jax.registry import make
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.run import METRICS
 
@@ -110,3 +112,39 @@ def test_bad_compositions_are_refused_at_construction():
         Budgeted(0)
     with pytest.raises(ValueError, match=r"Config\.algorithm='cmaes' is invalid: expected an Emitter or one of"):
         Config(algorithm="cmaes")
+
+
+def test_isoline_scales_vary_each_part_by_its_scale_from_its_own_key():
+    """One skill at the action box's centre, so both parents are it and a child's step from it is the iso noise
+    alone: part i of `IsoLine(scales)` is the one-scale child of key fold_in(key, i), its step times scales[i]."""
+    task = make("obstacle2d")
+    low, high = (np.asarray(b, np.float32) for b in action_bounds(task))
+    centre = (low + high) / 2
+    rep = Repertoire.empty(8, centre.size, 2, 4)
+    rep = rep.replace(actions=rep.actions.at[0].set(centre), valid=jnp.arange(8) < 1, count=jnp.int32(1),
+                      novelty=rep.novelty.at[0].set(1.0))
+    params, key = Config().params(), jax.random.PRNGKey(7)
+
+    def steps(emitter, key, num):
+        proposal = emitter.propose(key, (), rep, task, params, num)
+        np.testing.assert_array_equal(proposal.parents, 0)
+        return np.asarray(proposal.actions) - centre
+
+    # Steps are differences from the centre, so they agree to its last bit's rounding (atol), not exactly.
+    unit = [steps(IsoLine(), jax.random.fold_in(key, i), size) for i, size in enumerate((3, 2, 2))]
+    mixed = steps(IsoLine(scales=(1.0, 3.0, 0.5)), key, 7)  # 7 = 3 + 2 + 2: the first part one larger
+    np.testing.assert_array_equal(mixed[:3], unit[0])
+    np.testing.assert_allclose(mixed[3:5], 3.0 * unit[1], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(mixed[5:], 0.5 * unit[2], rtol=1e-5, atol=1e-5)
+    assert np.abs(mixed[3:5]).max() > 0  # the steps are not all zero (no clipping at the centre)
+    # One scale draws from the key itself; (1.0,) is the paper's QD.
+    np.testing.assert_allclose(steps(IsoLine(scales=(2.0,)), key, 4), 2.0 * steps(IsoLine(), key, 4), rtol=1e-5,
+                               atol=1e-5)
+    assert IsoLine(scales=(1.0,)) == IsoLine()
+
+
+@pytest.mark.parametrize("scales", [(), (1.0, 0.0), (1.0, -2.0), (float("inf"),), (float("nan"),), [1.0, 2.0],
+                                    (True,), ("2",)])
+def test_isoline_refuses_bad_scales(scales):
+    with pytest.raises(ValueError, match=r"IsoLine\.scales"):
+        IsoLine(scales=scales)
