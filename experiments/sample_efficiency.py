@@ -226,35 +226,37 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-no-fallback": _replaced(fallback=None),
     "mqd-not-anchored": _replaced(anchoring="none"),
     "mqd-always-anchored": _replaced(anchoring="always"),
-    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest", parent_weight=0.0, quality_share=0.0),  # 0.5's
+    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest", parent_weight=0.0, quality_share=0.0,
+                                wide_scale=1.0),  # 0.5's
     "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
     "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
     **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
     "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
     "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
     # "mqd" of version 0.7; "mqd-distance-ranked" is 0.6's.
-    "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0, quality_share=0.0),
-    "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0, quality_share=0.0),
+    "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0, quality_share=0.0, wide_scale=1.0),
+    "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0, quality_share=0.0, wide_scale=1.0),
     "mqd-rollout-buffer": _replaced(training_data="rollouts"),
     "mqd-steered": _replaced(steering=Steering()),
     # "mqd" since version 0.5 (anchored at the parent since 0.6, as every composition built on the preset).
     "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
     **{f"mqd-quality-{q:g}": _replaced(steering=Steering(share=0.25, quality=q)) for q in (0.5, 1.0, 2.0)},
     "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest", parent_weight=0.0,
-                           quality_share=0.0),  # 0.4's
+                           quality_share=0.0, wide_scale=1.0),  # 0.4's
     "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
     "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
     "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
     "mqd-voronoi-mutation-quarter": _replaced(steering=Steering(share=0.25, step="mutation")),
     "mqd-steered-mixed-quarter": _replaced(steering=MixedSteering(share=0.25)),
     "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
-    # "mqd" since version 0.8 is mqd-quality-share-0.1.
-    **{f"mqd-quality-share-{s:g}": _with(lambda cfg: "mqd", quality_share=s) for s in (0.1, 0.2, 0.3)},
+    # "mqd" of version 0.8 is mqd-quality-share-0.1 (the quality-share rules at one scale, as measured).
+    **{f"mqd-quality-share-{s:g}": _with(lambda cfg: "mqd", quality_share=s, wide_scale=1.0) for s in (0.1, 0.2, 0.3)},
     **{f"mqd-quality-share-0.2-margin-{m:g}": _rule_replaced(quality_share=0.2, quality_margin=m)
        for m in (0.25, 0.5, 1.0)},
     "mqd-two-scales": _replaced(inner=IsoLine(scales=(1.0, 0.25))),
     "mqd-two-scales-half": _replaced(inner=IsoLine(scales=(1.0, 0.5))),
-    "mqd-two-scales-wide": _replaced(inner=IsoLine(scales=(1.0, 2.0))),
+    "mqd-two-scales-wide": _replaced(inner=IsoLine(scales=(1.0, 2.0))),  # "mqd" since version 0.9
+    "mqd-one-scale": _with(lambda cfg: "mqd", wide_scale=1.0),  # 0.8's
     "mqd-voronoi-mutation-half": _replaced(steering=Steering(share=0.5, step="mutation")),
     "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
     "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),

@@ -105,7 +105,8 @@ class Config:
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
     model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight, quality_share; "mqd-paper":
+    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight, quality_share, wide_scale;
+    "mqd-paper":
     t_nov, t_qua, budgeted) configure the model presets; a composed emitter carries its own
     settings.
     """
@@ -158,6 +159,9 @@ class Config:
     # "mqd": the share of the rule's choices that go first to predicted quality gains in held niches
     # (acquisition.Diverse's quality_share; 0 = none, version 0.7's "mqd").
     quality_share: float = 0.1
+    # "mqd": half of the pool's children vary at `wide_scale` x both iso+line steps (IsoLine's scales (1,
+    # wide_scale)); 1 = one scale, version 0.8's "mqd".
+    wide_scale: float = 2.0
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate
     # exactly `population_size` of them (see acquisition.Budgeted).
@@ -196,6 +200,7 @@ class Config:
                "a float in [0, 1)")
         _check(_is_real(self.quality_share) and 0 <= self.quality_share <= 1, "quality_share", self.quality_share,
                "a float in [0, 1]")
+        _check(_is_real(self.wide_scale) and self.wide_scale > 0, "wide_scale", self.wide_scale, "a finite float > 0")
         _check(self.anchor in ANCHORS, "anchor", self.anchor, f"one of {ANCHORS}")
         pool = self.pool_factor * self.population_size
         steered = round(self.steering_share * pool)
@@ -290,7 +295,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer; before version
     0.6 (configs without `anchor`) it anchored at the nearest skill; before version 0.7 (configs without
     `parent_weight`) it ranked predicted openers by their distance alone; before version 0.8 (configs without
-    `quality_share`) it made no quality steps."""
+    `quality_share`) it made no quality steps; before version 0.9 (configs without `wide_scale`) it varied its
+    pool at one scale."""
     saved = dict(saved)
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
@@ -306,6 +312,8 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
         saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else Config.parent_weight
     if "quality_share" not in saved:  # before version 0.8 "mqd" made no quality steps
         saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.quality_share
+    if "wide_scale" not in saved:  # before version 0.9 "mqd" varied its pool at one scale
+        saved["wide_scale"] = 1.0 if saved.get("algorithm") == "mqd" else Config.wide_scale
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}

@@ -2,8 +2,9 @@
 
     "random"    -> Uniform()
     "qd"        -> IsoLine()
-    "mqd"       -> ModelEmitter(IsoLine(), Diverse(pool_factor, optimism, parent_weight=parent_weight,
-                                                   quality_share=quality_share),
+    "mqd"       -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
+                                Diverse(pool_factor, optimism, parent_weight=parent_weight,
+                                        quality_share=quality_share),
                                 ensemble_size members,
                                 anchoring="auto", anchor=anchor, fallback=Fallback(),
                                 steering=Steering(share=steering_share))    (this library's M-QD)
@@ -30,7 +31,8 @@ from mqd_jax.steering import Steering
 
 def _mqd(cfg: Config) -> ModelEmitter:
     rule = Diverse(cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=cfg.quality_share)
-    return ModelEmitter(IsoLine(), rule, k=cfg.k,
+    inner = IsoLine() if cfg.wide_scale == 1 else IsoLine(scales=(1.0, cfg.wide_scale))
+    return ModelEmitter(inner, rule, k=cfg.k,
                         hidden_size=cfg.hidden_size, ensemble_size=cfg.ensemble_size, batch_size=cfg.batch_size,
                         num_batches=cfg.num_batches, warmup_samples=cfg.warmup_samples, anchoring="auto",
                         anchor=cfg.anchor, fallback=Fallback(),
@@ -57,7 +59,7 @@ def emitter(cfg: Config) -> Emitter:
 # batches of one sweep must agree on the model fields both of their presets read, and only on those.
 _TRAINING = ("learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size")
 _MQD = (*_TRAINING, "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor", "parent_weight",
-        "quality_share")
+        "quality_share", "wide_scale")
 MODEL_FIELDS = frozenset((*_MQD, "t_nov", "t_qua", "budgeted"))
 
 

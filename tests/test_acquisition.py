@@ -393,9 +393,12 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5,
                steering_share=0.3)
     assert presets.emitter(cfg) == ModelEmitter(
-        IsoLine(), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1), k=cfg.k, hidden_size=cfg.hidden_size,
+        IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1), k=cfg.k,
+        hidden_size=cfg.hidden_size,
         ensemble_size=2, batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", anchor="parent",
         fallback=Fallback(), steering=Steering(share=0.3))
+    assert presets.emitter(dataclasses.replace(cfg, wide_scale=1.0)).inner == IsoLine()  # version 0.8's
+    assert presets.emitter(dataclasses.replace(cfg, wide_scale=3.0)).inner == IsoLine(scales=(1.0, 3.0))
     assert presets.emitter(dataclasses.replace(cfg, anchor="nearest")).anchor == "nearest"  # version 0.5's
     assert presets.emitter(dataclasses.replace(cfg, steering_share=0.0)).steering is None  # version 0.4's "mqd"
     assert presets.emitter(dataclasses.replace(cfg, quality_share=0.0)).acquisition == Diverse(
@@ -442,26 +445,34 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
 
 
 def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor_at_the_nearest_skill():
-    """... before 0.7 rank predicted openers by their distance alone and before 0.8 make no quality steps."""
+    """... before 0.7 rank predicted openers by their distance alone, before 0.8 make no quality steps and
+    before 0.9 vary the pool at one scale."""
     default = Config()
-    for algorithm, share, anchor, weight, quality in (
-            ("mqd", 0.0, "nearest", 0.0, 0.0),
-            ("qd", default.steering_share, default.anchor, default.parent_weight, default.quality_share),
-            ("mqd-paper", default.steering_share, default.anchor, default.parent_weight, default.quality_share)):
+    for algorithm, share, anchor, weight, quality, scale in (
+            ("mqd", 0.0, "nearest", 0.0, 0.0, 1.0),
+            ("qd", default.steering_share, default.anchor, default.parent_weight, default.quality_share,
+             default.wide_scale),
+            ("mqd-paper", default.steering_share, default.anchor, default.parent_weight, default.quality_share,
+             default.wide_scale)):
         saved = Config(algorithm=algorithm).to_dict()
         del saved["steering_share"], saved["anchor"], saved["parent_weight"], saved["quality_share"]  # 0.4's
+        del saved["wide_scale"]
         assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share, anchor=anchor,
-                                                 parent_weight=weight, quality_share=quality)
+                                                 parent_weight=weight, quality_share=quality, wide_scale=scale)
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["anchor"], saved["parent_weight"], saved["quality_share"]  # version 0.5's
+        del saved["anchor"], saved["parent_weight"], saved["quality_share"], saved["wide_scale"]  # version 0.5's
         assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor, parent_weight=weight,
-                                                 quality_share=quality)
+                                                 quality_share=quality, wide_scale=scale)
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["parent_weight"], saved["quality_share"]  # version 0.6's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, parent_weight=weight, quality_share=quality)
+        del saved["parent_weight"], saved["quality_share"], saved["wide_scale"]  # version 0.6's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, parent_weight=weight, quality_share=quality,
+                                                 wide_scale=scale)
         saved = Config(algorithm=algorithm).to_dict()
-        del saved["quality_share"]  # version 0.7's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, quality_share=quality)
+        del saved["quality_share"], saved["wide_scale"]  # version 0.7's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, quality_share=quality, wide_scale=scale)
+        saved = Config(algorithm=algorithm).to_dict()
+        del saved["wide_scale"]  # version 0.8's
+        assert Config.from_dict(saved) == Config(algorithm=algorithm, wide_scale=scale)
     assert Config().steering_share == 0.25 and presets.emitter(Config(algorithm="mqd")).steering == Steering(0.25)
     # The preset's rule reads the config's quality share.
     assert presets.emitter(Config(algorithm="mqd")).acquisition.quality_share == 0.1

@@ -25,7 +25,7 @@ def test_paper_presets_match_table_ii():
     ("line_sigma", float("inf")), ("adaptation_step_size", 0), ("adaptation_steps", -1),
     ("coverage_resolution", 4), ("neighbour_slack", -1), ("pool_factor", 0), ("steering_share", 1.0),
     ("steering_share", -0.1), ("anchor", "first"), ("parent_weight", -1.0), ("parent_weight", float("nan")),
-    ("quality_share", 1.5), ("quality_share", -0.1),
+    ("quality_share", 1.5), ("quality_share", -0.1), ("wide_scale", 0.0), ("wide_scale", float("nan")),
 ])
 def test_invalid_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=f"Config.{field}="):
