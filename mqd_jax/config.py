@@ -105,10 +105,9 @@ class Config:
     `task` is a registered task's name or a `Task`; `algorithm` a preset's name
     (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
     model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight, quality_share, wide_scale;
-    "mqd-paper":
-    t_nov, t_qua, budgeted) configure the model presets; a composed emitter carries its own
-    settings.
+    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight, quality_share,
+    wide_scale; "mqd-paper": t_nov, t_qua, budgeted) configure the model presets; a composed emitter
+    carries its own settings.
     """
 
     task: str | Task = "obstacle2d"
@@ -159,8 +158,8 @@ class Config:
     # "mqd": the share of the rule's choices that go first to predicted quality gains in held niches
     # (acquisition.Diverse's quality_share; 0 = none, version 0.7's "mqd").
     quality_share: float = 0.1
-    # "mqd": half of the pool's children vary at `wide_scale` x both iso+line steps (IsoLine's scales (1,
-    # wide_scale)); 1 = one scale, version 0.8's "mqd".
+    # "mqd": half of the pool's children vary at `wide_scale` x both iso+line steps
+    # (IsoLine(scales=(1, wide_scale))); 1 = one scale, version 0.8's "mqd".
     wide_scale: float = 2.0
     # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
     # rank `pool_factor` x population candidates with the model and evaluate

@@ -31,6 +31,7 @@ from mqd_jax.steering import Steering
 
 def _mqd(cfg: Config) -> ModelEmitter:
     rule = Diverse(cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=cfg.quality_share)
+    # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 must repeat version 0.8's runs.
     inner = IsoLine() if cfg.wide_scale == 1 else IsoLine(scales=(1.0, cfg.wide_scale))
     return ModelEmitter(inner, rule, k=cfg.k,
                         hidden_size=cfg.hidden_size, ensemble_size=cfg.ensemble_size, batch_size=cfg.batch_size,
