@@ -31,7 +31,6 @@ cannot).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import TYPE_CHECKING, Protocol
 
 import jax
@@ -41,6 +40,7 @@ from flax import struct
 
 from mqd_jax import neighbours as neighbours_lib
 from mqd_jax import repertoire as repertoire_lib
+from mqd_jax.checks import is_int, is_real
 from mqd_jax.repertoire import Repertoire
 
 if TYPE_CHECKING:
@@ -180,7 +180,7 @@ def _after_warm_up(top: jax.Array, wanted: jax.Array, warm_up: jax.Array,
 
 def _check_pool_factor(rule: object) -> None:
     value = rule.pool_factor
-    if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+    if not (is_int(value) and value >= 1):
         raise ValueError(f"{type(rule).__name__}.pool_factor={value!r} is invalid: expected an int >= 1")
 
 
@@ -285,13 +285,11 @@ class Diverse:
         _check_pool_factor(self)
         for name in ("beta", "parent_weight", "quality_margin"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
-                    and math.isfinite(value)):
+            if not (is_real(value) and value >= 0):
                 raise ValueError(f"Diverse.{name}={value!r} is invalid: expected a finite float >= 0")
-        if not (isinstance(self.neighbours, int) and not isinstance(self.neighbours, bool) and self.neighbours >= 1):
+        if not (is_int(self.neighbours) and self.neighbours >= 1):
             raise ValueError(f"Diverse.neighbours={self.neighbours!r} is invalid: expected an int >= 1")
-        if not (isinstance(self.quality_share, (int, float)) and not isinstance(self.quality_share, bool)
-                and 0 <= self.quality_share <= 1):
+        if not (is_real(self.quality_share) and 0 <= self.quality_share <= 1):
             raise ValueError(f"Diverse.quality_share={self.quality_share!r} is invalid: expected a float in [0, 1]")
 
     def pool_size(self, num: int) -> int:

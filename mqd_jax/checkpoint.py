@@ -32,6 +32,7 @@ import numpy as np
 from flax import serialization
 
 from mqd_jax import diagnostics
+from mqd_jax.checks import is_int
 from mqd_jax.config import Config, Params, check_params, upgraded
 from mqd_jax.folders import differences, write_atomically
 from mqd_jax.provenance import provenance
@@ -188,7 +189,7 @@ def run_with_checkpoints(
     after each chunk with the chunk's metrics (for progress output). Warns
     like `run_mqd` at the end.
     """
-    if not (isinstance(every, int) and not isinstance(every, bool) and every >= 1):
+    if not (is_int(every) and every >= 1):
         raise ValueError(f"every={every!r} is invalid: expected an int >= 1")
     params = cfg.params() if params is None else params
     check_params(params, cfg)

@@ -27,6 +27,7 @@ import numpy as np
 from flax import struct
 
 from mqd_jax import registry
+from mqd_jax.checks import is_int, is_real
 from mqd_jax.emitters import Emitter
 from mqd_jax.model_emitter import ANCHORS
 from mqd_jax.task import Task
@@ -83,14 +84,6 @@ def check_params(params: Params, cfg: Config) -> None:
 def _check(ok: bool, name: str, value: Any, allowed: str) -> None:
     if not ok:
         raise ValueError(f"Config.{name}={value!r} is invalid: expected {allowed}")
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_real(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,22 +177,22 @@ class Config:
                          ("archive_capacity", 1), ("neighbour_slack", 0),
                          ("coverage_resolution", 8), ("pool_factor", 1), ("ensemble_size", 1)):
             v = getattr(self, name)
-            _check(_is_int(v) and v >= lo, name, v, f"an int >= {lo}")
+            _check(is_int(v) and v >= lo, name, v, f"an int >= {lo}")
         for name in ("t_dist", "learning_rate", "adaptation_step_size"):
             v = getattr(self, name)
-            _check(_is_real(v) and v > 0, name, v, "a finite float > 0")
+            _check(is_real(v) and v > 0, name, v, "a finite float > 0")
         for name in ("t_nov", "iso_sigma", "line_sigma", "optimism", "parent_weight"):
             v = getattr(self, name)
-            _check(_is_real(v) and v >= 0, name, v, "a finite float >= 0")
-        _check(_is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
+            _check(is_real(v) and v >= 0, name, v, "a finite float >= 0")
+        _check(is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
         _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
         _check(not self.budgeted or self.algorithm == "mqd-paper", "budgeted", self.budgeted,
                f"False unless algorithm='mqd-paper' (it is {self.algorithm!r})")
-        _check(_is_real(self.steering_share) and 0 <= self.steering_share < 1, "steering_share", self.steering_share,
+        _check(is_real(self.steering_share) and 0 <= self.steering_share < 1, "steering_share", self.steering_share,
                "a float in [0, 1)")
-        _check(_is_real(self.quality_share) and 0 <= self.quality_share <= 1, "quality_share", self.quality_share,
+        _check(is_real(self.quality_share) and 0 <= self.quality_share <= 1, "quality_share", self.quality_share,
                "a float in [0, 1]")
-        _check(_is_real(self.wide_scale) and self.wide_scale > 0, "wide_scale", self.wide_scale, "a finite float > 0")
+        _check(is_real(self.wide_scale) and self.wide_scale > 0, "wide_scale", self.wide_scale, "a finite float > 0")
         _check(self.anchor in ANCHORS, "anchor", self.anchor, f"one of {ANCHORS}")
         pool = self.pool_factor * self.population_size
         steered = round(self.steering_share * pool)

@@ -23,7 +23,6 @@ This module holds the protocol and the two emitters of the paper's baselines:
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -31,6 +30,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from mqd_jax import selection, variation
+from mqd_jax.checks import is_real
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
 
@@ -141,9 +141,7 @@ class IsoLine(Emitter):
     scales: tuple[float, ...] = (1.0,)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.scales, tuple) and self.scales and all(
-                isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s > 0
-                for s in self.scales)):
+        if not (isinstance(self.scales, tuple) and self.scales and all(is_real(s) and s > 0 for s in self.scales)):
             raise ValueError(f"IsoLine.scales={self.scales!r} is invalid: expected a non-empty tuple of finite "
                              "floats > 0")
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from mqd_jax import repertoire as repertoire_lib
+from mqd_jax.checks import is_int
 from mqd_jax.emitters import Proposal
 from mqd_jax.model_emitter import ModelEmitter, ModelEmitterState
 from mqd_jax.repertoire import Repertoire
@@ -55,8 +56,7 @@ class Imagination(ModelEmitter):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not (isinstance(self.generations, int) and not isinstance(self.generations, bool)
-                and self.generations >= 1):
+        if not (is_int(self.generations) and self.generations >= 1):
             raise ValueError(f"Imagination.generations={self.generations!r} is invalid: expected an int >= 1")
         if self.fallback is not None:
             raise ValueError(f"Imagination.fallback={self.fallback!r} is invalid: expected None (the imagined "

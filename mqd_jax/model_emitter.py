@@ -58,6 +58,7 @@ from mqd_jax import archive as archive_lib
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax import steering as steering_lib
 from mqd_jax import validity as validity_lib
+from mqd_jax.checks import is_int
 from mqd_jax.emitters import Emitter, Evaluated, Proposal
 from mqd_jax.pursuit import Fallback, running_average
 from mqd_jax.repertoire import AddStatus, Repertoire
@@ -165,7 +166,7 @@ class ModelEmitter(Emitter):
         for name, lowest in (("k", 1), ("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1),
                              ("num_batches", 1), ("warmup_samples", 0), ("rollout_buffer", 1)):
             value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= lowest):
+            if not (is_int(value) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
         if self.anchoring == "nearest":
             raise ValueError("ModelEmitter.anchoring='nearest' was split in version 0.6: anchoring='always' "

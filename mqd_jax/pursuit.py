@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from mqd_jax.checks import is_real
 from mqd_jax.emitters import Evaluated
 from mqd_jax.repertoire import AddStatus
 
@@ -47,7 +48,7 @@ class Fallback:
     def __post_init__(self) -> None:
         for name, low, high in (("floor", 0.0, 0.5), ("rate", 0.0, 1.0)):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high):
+            if not (is_real(value) and low <= value <= high):
                 raise ValueError(f"Fallback.{name}={value!r} is invalid: expected a float in [{low}, {high}]")
 
     def init(self) -> FallbackState:

@@ -7,6 +7,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from mqd_jax.checks import is_int
+
 
 def mann_whitney(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Two-sided Mann-Whitney U test of samples a [n] and b [m].
@@ -46,7 +48,7 @@ def bootstrap_interval(statistic: Callable[..., float], groups: Sequence[np.ndar
     """
     if not 0 < level < 1:
         raise ValueError(f"bootstrap_interval: level={level!r} is invalid: expected a float in (0, 1)")
-    if not (isinstance(draws, int) and draws >= 1):
+    if not (is_int(draws) and draws >= 1):
         raise ValueError(f"bootstrap_interval: draws={draws!r} is invalid: expected an int >= 1")
     groups = [np.asarray(g) for g in groups]
     if not groups or any(len(g) == 0 for g in groups):

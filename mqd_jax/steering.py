@@ -41,6 +41,7 @@ import jax.numpy as jnp
 
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax import selection
+from mqd_jax.checks import is_real
 from mqd_jax.emitters import action_bounds
 from mqd_jax.pursuit import Fallback
 from mqd_jax.repertoire import Repertoire
@@ -84,8 +85,8 @@ class Steering:
     def __post_init__(self) -> None:
         for name in ("share", "step_low", "step_high"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0):
-                raise ValueError(f"Steering.{name}={value!r} is invalid: expected a float > 0")
+            if not (is_real(value) and value > 0):
+                raise ValueError(f"Steering.{name}={value!r} is invalid: expected a finite float > 0")
         if self.share >= 1:
             raise ValueError(f"Steering.share={self.share!r} is invalid: expected a float in (0, 1) (the inner "
                              "emitter keeps the rest of the pool)")
@@ -95,8 +96,8 @@ class Steering:
             raise ValueError(f"Steering.step={self.step!r} is invalid: expected one of {STEPS}")
         if self.pursuit is not None and not isinstance(self.pursuit, Fallback):
             raise ValueError(f"Steering.pursuit={self.pursuit!r} is invalid: expected None or a Fallback")
-        if not (isinstance(self.quality, (int, float)) and not isinstance(self.quality, bool) and self.quality >= 0):
-            raise ValueError(f"Steering.quality={self.quality!r} is invalid: expected a float >= 0")
+        if not (is_real(self.quality) and self.quality >= 0):
+            raise ValueError(f"Steering.quality={self.quality!r} is invalid: expected a finite float >= 0")
         if self.quality and self.step != "jacobian":
             raise ValueError(f"Steering.quality={self.quality!r} needs step='jacobian' (the model's quality gradient)")
         if self.step_low > self.step_high:

@@ -32,6 +32,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from mqd_jax import diagnostics
+from mqd_jax.checks import is_int
 from mqd_jax.config import Config, Params, check_params
 from mqd_jax.run import State, get_task, init, run_generations
 
@@ -40,7 +41,7 @@ Metrics = dict[str, np.ndarray]
 
 def seed_keys(seeds: int, key: jax.Array | None = None) -> jax.Array:
     """[seeds, 2] the keys of a seed sweep: `seeds` splits of `key` (default PRNGKey(0))."""
-    if not (isinstance(seeds, int) and seeds >= 1):
+    if not (is_int(seeds) and seeds >= 1):
         raise ValueError(f"seeds={seeds!r} is invalid: expected an int >= 1")
     return jax.random.split(jax.random.PRNGKey(0) if key is None else key, seeds)
 
@@ -121,7 +122,7 @@ def run_batch(
         raise ValueError(f"params must be scalars or have shape ({runs},) (one per key); got shapes {sorted(shapes)}")
     check_params(params, cfg)
     chunk = cfg.max_generations if chunk is None else chunk
-    if not (isinstance(chunk, int) and not isinstance(chunk, bool) and chunk >= 1):
+    if not (is_int(chunk) and chunk >= 1):
         raise ValueError(f"chunk={chunk!r} is invalid: expected an int >= 1")
     chunk = min(chunk, cfg.max_generations)
 

@@ -28,6 +28,7 @@ from flax import struct
 
 from mqd_jax import archive as archive_lib
 from mqd_jax import model
+from mqd_jax.checks import is_int
 from mqd_jax.task import Task
 
 
@@ -65,7 +66,7 @@ class Validity:
     def __post_init__(self) -> None:
         for name in ("hidden_size", "buffer_size", "batch_size", "num_batches"):
             value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            if not (is_int(value) and value >= 1):
                 raise ValueError(f"Validity.{name}={value!r} is invalid: expected an int >= 1")
 
     def init(self, key: jax.Array, task: Task) -> ValidityState:

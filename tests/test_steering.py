@@ -138,6 +138,9 @@ def test_steered_children_stay_in_the_action_box(linear_task):
                                                ({"parents": "uniform"}, "parents"),
                                                ({"pursuit": 0.5}, "pursuit"), ({"step": "line"}, "step"),
                                                ({"quality": -1.0}, "quality"),
+                                               # No step is infinite (refused since the shared checks).
+                                               ({"step_high": float("inf")}, "step_high"),
+                                               ({"quality": float("inf")}, "quality"),
                                                ({"quality": 1.0, "step": "mutation"}, "quality")])
 def test_bad_steering_is_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):

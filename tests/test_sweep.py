@@ -60,6 +60,8 @@ def test_bad_batches_are_refused():
         run_batch(cfg, seed_keys(3), jax.tree.map(lambda x: x[None].repeat(2), cfg.params()))
     with pytest.raises(ValueError, match="seeds=0"):
         seed_keys(0)
+    with pytest.raises(ValueError, match="seeds=True"):  # a bool is not a count
+        seed_keys(True)
 
 
 # One sharded batch of 3 runs; with arguments (coordinator address, process id) it is one of two processes.
