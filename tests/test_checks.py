@@ -16,6 +16,7 @@ def test_is_int_takes_ints_but_not_bools(value, expected):
 
 @pytest.mark.parametrize(("value", "expected"), [(3, True), (-0.5, True), (np.float64(0.25), True), (1e308, True),
                                                  (math.inf, False), (-math.inf, False), (math.nan, False),
-                                                 (True, False), ("0.5", False), (None, False), (np.float32(0.5), False)])
+                                                 (True, False), ("0.5", False), (None, False),
+                                                 (np.float32(0.5), False)])
 def test_is_real_takes_finite_numbers_only(value, expected):
     assert is_real(value) is expected

@@ -53,7 +53,8 @@ def test_bootstrap_of_identical_runs_is_a_point_and_inf_is_an_end():
     assert (low, high) == (1.0, np.inf)
 
 
-@pytest.mark.parametrize("kwargs", [dict(level=1.0), dict(level=0.0), dict(draws=0), dict(draws=True), dict(groups=[np.zeros(0)])])
+@pytest.mark.parametrize("kwargs", [dict(level=1.0), dict(level=0.0), dict(draws=0), dict(draws=True),
+                                    dict(groups=[np.zeros(0)])])
 def test_bootstrap_refuses_bad_arguments(kwargs):
     args = dict(statistic=lambda x: float(x.sum()), groups=[np.ones(3)]) | kwargs
     with pytest.raises(ValueError, match="bootstrap_interval"):
