@@ -1,8 +1,9 @@
 """Rollouts to QD: how many of QD's rollouts M-QD needs to reach QD's final coverage, per composition.
 
     python experiments/sample_efficiency.py [--tasks obstacle2d object2d] [--seeds 10]
-        [--compositions qd mqd-paper mqd ...] [--out docs/data/sample_efficiency_2d.md]
+        [--compositions qd mqd-paper mqd oracle] [--out docs/data/sample_efficiency_2d.md]
     python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--run COMPOSITION ...] [--out ...]
+    python experiments/sample_efficiency.py --merge JSON [JSON ...] [--out ...]
 
 A composition is a name of `COMPOSITIONS` or "NAME:FIELD=VALUE,..." with fields of `Config`
 changed before NAME composes the config (`mqd:parent_weight=2`; refused before anything runs
@@ -10,7 +11,9 @@ where NAME sets or ignores the field, or the value is invalid). Every compositio
 seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the task's Table II settings, vmapped
 in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
 presets `mqd sweep` wrote to those folders instead of running (the robot tasks, whose runs take long);
-`--run` adds compositions run here on the same tasks and seeds.
+`--run` adds compositions run here on the same tasks and seeds. `--merge` runs nothing: it writes one
+table and figure of the curves in earlier outputs of this script (a composition in two files must
+hold the same curve there, so every row is measured against one QD).
 
 For each task and composition, from the mean over seeds of coverage [G] and rollouts spent [G]:
   * rollouts to QD: the rollouts at which the mean coverage first reaches QD's final mean
@@ -270,8 +273,9 @@ COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
     "mqd-lr2": _with(lambda cfg: "mqd", learning_rate=2e-3),
     "mqd-pool-16": _with(lambda cfg: "mqd", pool_factor=16),
     "mqd-validity": _replaced(validity=Validity()),
-    "mqd-imagination": _rebuilt(Imagination, fallback=None, generations=3),
-    "mqd-imagination-1": _rebuilt(Imagination, fallback=None, generations=1),
+    # Imagined generations draw their own pools: no steering (the preset's since version 0.5).
+    "mqd-imagination": _rebuilt(Imagination, fallback=None, steering=None, generations=3),
+    "mqd-imagination-1": _rebuilt(Imagination, fallback=None, steering=None, generations=1),
     "oracle": _rebuilt(Oracle, anchoring="none", fallback=None, ensemble_size=1, num_batches=1),
 }
 FRACTIONS = (0.25, 0.5, 1.0)
@@ -500,12 +504,36 @@ def _baselines(paths: list[str], tasks: list[str], seeds: int, generations: int 
     return known
 
 
+def merged(paths: list[str], tasks: list[str] | None) -> dict[str, dict[str, dict[str, Any]]]:
+    """task -> composition -> curve from earlier outputs (JSON) of this script, in the files' order, of `tasks`
+    only where given (in their order; refused where no file holds one); refused
+    (SystemExit) where a composition's curve of a task stands in two files and differs (two draws of QD's runs
+    would measure rows against different baselines)."""
+    curves: dict[str, dict[str, dict[str, Any]]] = {}
+    for path in paths:
+        with open(path) as f:
+            for task, by in json.load(f).items():
+                if tasks is not None and task not in tasks:
+                    continue
+                for name, curve in by.items():
+                    held = curves.setdefault(task, {}).setdefault(name, curve)
+                    if any(held.get(key) != curve.get(key) for key in ("rollouts", "coverage", "mean_quality")):
+                        raise SystemExit(f"--merge {path}: {task}'s {name} differs from its curve in an earlier file")
+    if tasks is None:
+        return curves
+    missing = [task for task in tasks if task not in curves]
+    if missing:
+        raise SystemExit(f"--merge: no file holds {', '.join(missing)}")
+    return {task: curves[task] for task in tasks}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=["obstacle2d", "object2d"])
+    parser.add_argument("--tasks", nargs="+", default=None,
+                        help="default: obstacle2d object2d; with --merge, every task of the files")
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--generations", type=int, default=None, help="override Table II's (quick checks)")
-    parser.add_argument("--compositions", nargs="+", default=list(COMPOSITIONS),
+    parser.add_argument("--compositions", nargs="+", default=["qd", "mqd-paper", "mqd", "oracle"],
                         help="names of COMPOSITIONS, each optionally with Config fields changed: NAME:FIELD=VALUE,...")
     parser.add_argument("--sweep", nargs="+", default=None,
                         help="read the presets of `mqd sweep` folders instead of running; DIR=SUFFIX names "
@@ -518,10 +546,15 @@ def main() -> None:
                         "script (NAME.json beside NAME.md, which names its machine and seeds) instead of running QD; "
                         "on a contact task a file from an earlier version may hold another draw of QD's runs "
                         "(docs/results.md, 'Quality on QD's niches')")
+    parser.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+                        help="run nothing: tabulate and draw the curves of these earlier outputs of this script "
+                        "together (timings and quality on QD's niches blank: they need runs made here)")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
     args = parser.parse_args()
+    merge_tasks = args.tasks
+    args.tasks = args.tasks or ["obstacle2d", "object2d"]
     register_experiment_tasks(args.tasks)
     for task in args.tasks:  # a bad spec is refused before anything runs
         for spec in [*args.compositions, *(args.run or [])]:
@@ -530,8 +563,15 @@ def main() -> None:
     curves: dict[str, dict[str, dict[str, Any]]] = {}
     if args.baseline and args.sweep:
         raise SystemExit("--baseline is for runs made here; with --sweep QD's curves come from the sweep")
+    if args.merge and (args.sweep or args.baseline or args.run):
+        raise SystemExit("--merge runs nothing: it takes no --sweep, --baseline or --run")
     known = _baselines(args.baseline, args.tasks, args.seeds, args.generations)
-    if args.sweep:
+    if args.merge:
+        curves = merged(args.merge, merge_tasks)
+        seeds = {len(c["final_coverage"]) for by in curves.values() for c in by.values()}
+        command = (f"python experiments/sample_efficiency.py --merge {' '.join(args.merge)}"
+                   + (f" --tasks {' '.join(merge_tasks)}" if merge_tasks else ""))
+    elif args.sweep:
         folders = [spec.partition("=") for spec in args.sweep]
         loaded = [results.load_runs(folder) for folder, _, _ in folders]
         for (_, _, suffix), runs in zip(folders, loaded, strict=True):
@@ -564,7 +604,9 @@ def main() -> None:
         raise SystemExit(f"no QD runs of {missing}: rollouts to QD needs them")
 
     taken = sorted({n for task, by in curves.items() for n in by if n in known.get(task, {})})
-    lines = [f"Command: `{command}`", "", f"Machine: {report.machine()}; seeds: {sorted(seeds)}."
+    made = (f"Runs from {', '.join(args.merge)} (each .md beside them names its machine and seeds); seeds per run: "
+            f"{sorted(seeds)}." if args.merge else f"Machine: {report.machine()}; seeds: {sorted(seeds)}.")
+    lines = [f"Command: `{command}`", "", made
              + (f" {', '.join(taken)}: from {', '.join(args.baseline)} (not run here; the machine and seeds are "
                 "in the .md beside it)." if taken else ""), "",
              "Rollouts to QD = fraction of QD's rollouts at which the mean coverage first reaches QD's final mean "
@@ -576,8 +618,8 @@ def main() -> None:
              "over QD's final skills with one of the composition's final skills within t_dist (same seed; the share "
              "of QD's skills that have one in brackets), the mean of the nearest such skill's quality minus QD's; "
              "blank where QD ran in another process or the composition spent other rollouts than QD."
-             + ("" if args.sweep else " ms/gen: the batch's time per generation after compiling; ratio to QD's "
-                "(blank where QD's curve was not run here).")
+             + ("" if args.sweep or args.merge else " ms/gen: the batch's time per generation after compiling; ratio "
+                "to QD's (blank where QD's curve was not run here).")
              + " Invalid: the share of all rollouts that were invalid (blank in files written before it)."
              " Opener AUC, model share, steered, steering share, validity AUC: the model's diagnostics `opener_auc`, "
              "`model_share`, `steered` (rollouts per generation), `steering_share` and `validity_auc` (README, "
@@ -590,7 +632,7 @@ def main() -> None:
     for task, by in curves.items():
         lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         # Times are ratios within one invocation: none where QD's curve came from another.
-        timed = not args.sweep and "qd" not in known.get(task, {})
+        timed = not (args.sweep or args.merge) and "qd" not in known.get(task, {})
         lines += ["| " + " | ".join(_row(n, c, by["qd"], timed)) + " |" for n, c in by.items()]
         lines.append("")
     report.write(lines, args.out)
