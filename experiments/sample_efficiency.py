@@ -3,7 +3,7 @@
     python experiments/sample_efficiency.py [--tasks obstacle2d object2d] [--seeds 10]
         [--compositions qd mqd-paper mqd oracle] [--out docs/data/sample_efficiency_2d.md]
     python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--run COMPOSITION ...] [--out ...]
-    python experiments/sample_efficiency.py --merge JSON [JSON ...] [--out ...]
+    python experiments/sample_efficiency.py --merge JSON[=TASK,...] [JSON ...] [--tasks ...] [--out ...]
 
 A composition is a name of `COMPOSITIONS` or "NAME:FIELD=VALUE,..." with fields of `Config`
 changed before NAME composes the config (`mqd:parent_weight=2`; refused before anything runs
@@ -449,14 +449,23 @@ def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str | No
     plt = report.pyplot()
     if plt is None:
         return None
-    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.6), squeeze=False)
-    for ax, (task, by) in zip(axes[0], curves.items(), strict=True):
+    columns = min(4, len(curves))  # rows of at most four tasks
+    rows = -(-len(curves) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.6 * rows), squeeze=False)
+    # One colour per composition in every panel, in the order the compositions first appear.
+    names = list(dict.fromkeys(name for by in curves.values() for name in by))
+    colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
+    for ax, (task, by) in zip(axes.flat, curves.items(), strict=False):  # spare panels stay blank
         for name, c in by.items():
-            ax.plot(c["rollouts"], c["coverage"], label=name, lw=2.2 if name == "mqd" else 1.2,
+            ax.plot(c["rollouts"], c["coverage"], label=name, color=colours[name], lw=2.2 if name == "mqd" else 1.2,
                     ls="--" if name.partition(":")[0] == "oracle" else "-")
         ax.axhline(by["qd"]["coverage"][-1], color="0.6", lw=0.8, ls=":")
         ax.set(title=task, xlabel="rollouts", ylabel="coverage")
-    axes[0][-1].legend(fontsize=7, loc="lower right")
+    for ax in axes.flat[len(curves):]:
+        ax.axis("off")
+    # Every composition in the legend, also those only some panels have.
+    handles = {h.get_label(): h for ax in axes.flat for h in ax.get_lines() if not h.get_label().startswith("_")}
+    axes.flat[len(curves) - 1].legend([handles[n] for n in names], names, fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -505,15 +514,17 @@ def _baselines(paths: list[str], tasks: list[str], seeds: int, generations: int 
 
 
 def merged(paths: list[str], tasks: list[str] | None) -> dict[str, dict[str, dict[str, Any]]]:
-    """task -> composition -> curve from earlier outputs (JSON) of this script, in the files' order, of `tasks`
-    only where given (in their order; refused where no file holds one); refused
+    """task -> composition -> curve from earlier outputs (JSON) of this script, in the files' order ("PATH=TASK,TASK":
+    only those tasks of that file), of `tasks` only where given (in their order; refused where no file holds one);
+    refused
     (SystemExit) where a composition's curve of a task stands in two files and differs (two draws of QD's runs
     would measure rows against different baselines)."""
     curves: dict[str, dict[str, dict[str, Any]]] = {}
-    for path in paths:
+    for spec in paths:
+        path, _, only = spec.partition("=")
         with open(path) as f:
             for task, by in json.load(f).items():
-                if tasks is not None and task not in tasks:
+                if (tasks is not None and task not in tasks) or (only and task not in only.split(",")):
                     continue
                 for name, curve in by.items():
                     held = curves.setdefault(task, {}).setdefault(name, curve)
@@ -546,9 +557,10 @@ def main() -> None:
                         "script (NAME.json beside NAME.md, which names its machine and seeds) instead of running QD; "
                         "on a contact task a file from an earlier version may hold another draw of QD's runs "
                         "(docs/results.md, 'Quality on QD's niches')")
-    parser.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+    parser.add_argument("--merge", nargs="+", default=None, metavar="JSON[=TASK,...]",
                         help="run nothing: tabulate and draw the curves of these earlier outputs of this script "
-                        "together (timings and quality on QD's niches blank: they need runs made here)")
+                        "together, JSON=TASK,TASK taking only those tasks of a file (timings and quality on QD's "
+                        "niches blank: they need runs made here)")
     parser.add_argument("--out", default="docs/data/sample_efficiency_2d.md")
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
