@@ -515,10 +515,9 @@ def _baselines(paths: list[str], tasks: list[str], seeds: int, generations: int 
 
 def merged(paths: list[str], tasks: list[str] | None) -> dict[str, dict[str, dict[str, Any]]]:
     """task -> composition -> curve from earlier outputs (JSON) of this script, in the files' order ("PATH=TASK,TASK":
-    only those tasks of that file), of `tasks` only where given (in their order; refused where no file holds one);
-    refused
-    (SystemExit) where a composition's curve of a task stands in two files and differs (two draws of QD's runs
-    would measure rows against different baselines)."""
+    only those tasks of that file), of `tasks` only where given (in their order; refused where no file holds one).
+    Refused (SystemExit) where a composition's curve of a task stands in two files and differs: two draws of QD's
+    runs would measure rows against different baselines."""
     curves: dict[str, dict[str, dict[str, Any]]] = {}
     for spec in paths:
         path, _, only = spec.partition("=")
