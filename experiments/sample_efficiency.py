@@ -567,7 +567,7 @@ def main() -> None:
     merge_tasks = args.tasks
     args.tasks = args.tasks or ["obstacle2d", "object2d"]
     register_experiment_tasks(args.tasks)
-    for task in args.tasks:  # a bad spec is refused before anything runs
+    for task in [] if args.merge else args.tasks:  # a bad spec is refused before anything runs
         for spec in [*args.compositions, *(args.run or [])]:
             configured(spec, Config.paper(task))
 
