@@ -455,16 +455,16 @@ def _figure(curves: dict[str, dict[str, dict[str, Any]]], path: str) -> str | No
     # One colour per composition in every panel, in the order the compositions first appear.
     names = list(dict.fromkeys(name for by in curves.values() for name in by))
     colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
+    handles = {}  # a line of each composition, for one legend of all of them (some panels lack some)
     for ax, (task, by) in zip(axes.flat, curves.items(), strict=False):  # spare panels stay blank
         for name, c in by.items():
-            ax.plot(c["rollouts"], c["coverage"], label=name, color=colours[name], lw=2.2 if name == "mqd" else 1.2,
-                    ls="--" if name.partition(":")[0] == "oracle" else "-")
+            handles[name], = ax.plot(c["rollouts"], c["coverage"], color=colours[name],
+                                     lw=2.2 if name == "mqd" else 1.2,
+                                     ls="--" if name.partition(":")[0] == "oracle" else "-")
         ax.axhline(by["qd"]["coverage"][-1], color="0.6", lw=0.8, ls=":")
         ax.set(title=task, xlabel="rollouts", ylabel="coverage")
     for ax in axes.flat[len(curves):]:
         ax.axis("off")
-    # Every composition in the legend, also those only some panels have.
-    handles = {h.get_label(): h for ax in axes.flat for h in ax.get_lines() if not h.get_label().startswith("_")}
     axes.flat[len(curves) - 1].legend([handles[n] for n in names], names, fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -564,10 +564,9 @@ def main() -> None:
     parser.add_argument("--figure", default=None,
                         help="default: docs/figures/NAME.png for --out docs/data/NAME.md, else NAME.png beside --out")
     args = parser.parse_args()
-    merge_tasks = args.tasks
-    args.tasks = args.tasks or ["obstacle2d", "object2d"]
-    register_experiment_tasks(args.tasks)
-    for task in [] if args.merge else args.tasks:  # a bad spec is refused before anything runs
+    tasks = args.tasks or ["obstacle2d", "object2d"]  # the tasks to run; --merge reads args.tasks itself
+    register_experiment_tasks(tasks)
+    for task in [] if args.merge else tasks:  # a bad spec is refused before anything runs
         for spec in [*args.compositions, *(args.run or [])]:
             configured(spec, Config.paper(task))
 
@@ -576,12 +575,12 @@ def main() -> None:
         raise SystemExit("--baseline is for runs made here; with --sweep QD's curves come from the sweep")
     if args.merge and (args.sweep or args.baseline or args.run):
         raise SystemExit("--merge runs nothing: it takes no --sweep, --baseline or --run")
-    known = _baselines(args.baseline, args.tasks, args.seeds, args.generations)
+    known = _baselines(args.baseline, tasks, args.seeds, args.generations)
     if args.merge:
-        curves = merged(args.merge, merge_tasks)
+        curves = merged(args.merge, args.tasks)
         seeds = {len(c["final_coverage"]) for by in curves.values() for c in by.values()}
         command = (f"python experiments/sample_efficiency.py --merge {' '.join(args.merge)}"
-                   + (f" --tasks {' '.join(merge_tasks)}" if merge_tasks else ""))
+                   + (f" --tasks {' '.join(args.tasks)}" if args.tasks else ""))
     elif args.sweep:
         folders = [spec.partition("=") for spec in args.sweep]
         loaded = [results.load_runs(folder) for folder, _, _ in folders]
@@ -599,14 +598,14 @@ def main() -> None:
                 by.update({name: _run(task, name, next(iter(seeds)), args.generations) for name in args.run})
             command += f" --run {' '.join(args.run)}"
     else:
-        for task in args.tasks:
+        for task in tasks:
             robot = registry.make(task).table_ii_column == "robot"
             names = ["qd"] + [n for n in args.compositions
                               if n != "qd" and not (robot and n.partition(":")[0] == "oracle")]
             curves[task] = {name: known[task][name] if name in known.get(task, {}) else
                             _run(task, name, args.seeds, args.generations) for name in names}
         seeds = {args.seeds}
-        command = (f"python experiments/sample_efficiency.py --tasks {' '.join(args.tasks)} --seeds {args.seeds} "
+        command = (f"python experiments/sample_efficiency.py --tasks {' '.join(tasks)} --seeds {args.seeds} "
                    f"--compositions {' '.join(args.compositions)}"
                    + (f" --generations {args.generations}" if args.generations else "")
                    + (f" --baseline {' '.join(args.baseline)}" if args.baseline else ""))
