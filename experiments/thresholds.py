@@ -25,7 +25,7 @@ import numpy as np
 import report
 
 from mqd_jax import Config, plots
-from mqd_jax.results import write_json
+from mqd_jax.folders import write_json
 from mqd_jax.sweep import run_batch, seed_keys, threshold_grid
 
 

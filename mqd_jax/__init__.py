@@ -11,6 +11,7 @@ from mqd_jax.run import Candidates, State, ask, generation, init, run_generation
 from mqd_jax.steering import Steering
 from mqd_jax.task import Task
 from mqd_jax.validity import Validity
+from mqd_jax.version import __version__
 
 __all__ = [
            "Adapted",
@@ -33,6 +34,7 @@ __all__ = [
            "Threshold",
            "Uniform",
            "Validity",
+           "__version__",
            "adapt",
            "ask",
            "generation",

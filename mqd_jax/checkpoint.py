@@ -97,30 +97,35 @@ def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array)
     write_atomically(path, serialization.msgpack_serialize(payload))
 
 
-def _refuse(path: str, why: str) -> ValueError:
-    return ValueError(f"checkpoint {path!r} refused: {why}")
+class Refused(ValueError):
+    """A checkpoint that cannot be used: damaged, altered, or of another config or key (`path`: the file)."""
+
+    def __init__(self, path: str, why: str) -> None:
+        super().__init__(f"checkpoint {path!r} refused: {why}")
+        self.path = path
+
 
 
 def _restore(path: str, data: bytes) -> Any:
     try:
         return serialization.msgpack_restore(data)
     except Exception as e:  # msgpack raises several types on damaged bytes
-        raise _refuse(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from e
+        raise Refused(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from e
 
 
-def _read(path: str) -> dict[str, Any]:
+def read(path: str) -> dict[str, Any]:
     """The checkpoint's contents (config, key, state, metrics), checksum verified, older formats converted."""
     try:
         with open(path, "rb") as f:
             payload: Any = _restore(path, f.read())
     except OSError as e:
-        raise _refuse(path, f"cannot read it ({e})") from e
+        raise Refused(path, f"cannot read it ({e})") from e
     if not isinstance(payload, dict) or payload.get("format") not in range(1, FORMAT + 1):
-        raise _refuse(path, f"not an mqd-jax checkpoint of format 1 to {FORMAT}")
+        raise Refused(path, f"not an mqd-jax checkpoint of format 1 to {FORMAT}")
     if payload["format"] >= 3:
         body = payload.get("body")
         if not isinstance(body, bytes) or hashlib.sha256(body).hexdigest() != payload.get("sha256"):
-            raise _refuse(path, "its checksum does not match: the file was altered or damaged")
+            raise Refused(path, "its checksum does not match: the file was altered or damaged")
         payload = {**_restore(path, body), "format": payload["format"]}
     elif payload["format"] == 1:
         payload["state"] = _from_format_1(payload["state"])
@@ -129,12 +134,12 @@ def _read(path: str) -> dict[str, Any]:
 
 def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     """The state and metrics saved in `path` by a run of `cfg` started from `key`."""
-    payload = _read(path)
+    payload = read(path)
     differ = differences(upgraded(payload["config"]), cfg.to_dict())
     if differ:
-        raise _refuse(path, f"it was written with another config ({differ})")
+        raise Refused(path, f"it was written with another config ({differ})")
     if not np.array_equal(payload["key"], np.asarray(key)):
-        raise _refuse(path, "it was written by a run started from another key")
+        raise Refused(path, "it was written by a run started from another key")
     key = np.asarray(key)
     # Shapes only; a batch of runs (keys [S, 2]) saved its states with a leading [S] axis.
     start = (lambda k: init(k, cfg)) if key.ndim == 1 else jax.vmap(lambda k: init(k, cfg))
@@ -147,10 +152,10 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:
-        raise _refuse(path, f"its state does not fit this config ({e})") from e
+        raise Refused(path, f"its state does not fit this config ({e})") from e
     for want, got in zip(jax.tree.leaves(template), jax.tree.leaves(state), strict=True):
         if want.shape != np.shape(got) or want.dtype != np.asarray(got).dtype:
-            raise _refuse(path, f"an array of shape {np.shape(got)} where {want.shape} was expected")
+            raise Refused(path, f"an array of shape {np.shape(got)} where {want.shape} was expected")
     state = jax.tree.map(lambda want, got: np.asarray(got, want.dtype), template, state)
     return state, dict(payload["metrics"])
 

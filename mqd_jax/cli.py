@@ -19,8 +19,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
+import shlex
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 
@@ -38,29 +41,47 @@ COLUMNS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
 _ALIASES = {"max_generations": ["--generations"], "population_size": ["--population"]}
 _PER_TASK = ("task", "algorithm")  # `sweep` takes these as lists
 RUN_FILES = ("metrics.json", "repertoire.npz", "run.png", "checkpoint.msgpack")
+SEEDS = 2**32  # a run's key is PRNGKey(seed): seeds 0 .. 2**32 - 1 give distinct keys
 _RUN_DEFAULTS = {"max_generations": 100}  # the main job is a short run
 CACHE_ENV = "MQD_JAX_CACHE_DIR"
 
 
-def compilation_cache(enabled: bool) -> str | None:
-    """Turns on JAX's persistent compilation cache; returns its folder (None if off).
+def _writable(folder: str) -> bool:
+    """Whether files can be made in `folder` (created if missing)."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
+
+
+def compilation_cache(enabled: bool) -> tuple[str | None, str]:
+    """Turns on JAX's persistent compilation cache; returns its folder (None if off) and what the progress line
+    says of it.
 
     The folder: $MQD_JAX_CACHE_DIR, else $XDG_CACHE_HOME/mqd-jax (default
     ~/.cache/mqd-jax). A cache folder the user gave JAX (JAX_COMPILATION_CACHE_DIR)
-    is kept. `--no-cache` or MQD_JAX_CACHE_DIR=off turn it off.
+    is kept. `--no-cache` or MQD_JAX_CACHE_DIR=off turn it off; a folder that
+    cannot be written leaves it off, and says so.
     """
     folder = os.environ.get(CACHE_ENV)
-    if not enabled or folder in ("0", "off", ""):
-        return None
+    if not enabled:
+        return None, "no compilation cache (--no-cache)"
+    if folder in ("0", "off", ""):
+        return None, f"no compilation cache ({CACHE_ENV}={folder})"
     if jax.config.jax_compilation_cache_dir:
-        return jax.config.jax_compilation_cache_dir
+        folder = jax.config.jax_compilation_cache_dir
+        return folder, f"kept in {folder} for later starts (JAX's own cache folder)"
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     folder = folder or os.path.join(base, "mqd-jax")
+    if not _writable(folder):
+        return None, f"no compilation cache: {folder} cannot be written (set {CACHE_ENV} to a writable folder)"
     jax.config.update("jax_compilation_cache_dir", folder)
     # Every program, however small or fast to compile: a run compiles several.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return folder
+    return folder, f"kept in {folder} for later starts"
 
 
 def _task_names() -> str:
@@ -128,9 +149,8 @@ class _Progress:
         if "discarded" in metrics:
             self.discarded = int(np.atleast_2d(metrics["discarded"]).sum(1).mean())
 
-    def compiling(self, cache: str | None) -> None:
-        where = f"kept in {cache} for later starts" if cache else "no compilation cache (--no-cache)"
-        print(f"{self.label}compiling (once per config and machine; {where}) ...", flush=True)
+    def compiling(self, cache: str) -> None:
+        print(f"{self.label}compiling (once per config and machine; {cache}) ...", flush=True)
         self.start = time.perf_counter()
 
     def compiled(self) -> None:
@@ -157,7 +177,18 @@ def _say_removed(paths: list[str], why: str) -> None:
         print(f"{why}: removed {', '.join(os.path.basename(p) for p in paths)}")
 
 
+def _command(args: argparse.Namespace, drop: tuple[str, ...] = (), add: tuple[str, ...] = ()) -> str:
+    """The command line that was given, without the flags `drop` and with `add`."""
+    return "mqd " + shlex.join([*(a for a in args.argv if a not in drop), *add])
+
+
 def _run(args: argparse.Namespace) -> None:
+    if not 0 <= args.seed < SEEDS:
+        raise ValueError(f"--seed {args.seed} is invalid: expected an int from 0 to {SEEDS - 1} (PRNGKey(seed): "
+                         "larger seeds would share keys)")
+    if args.resume and args.overwrite:
+        raise ValueError("--resume and --overwrite together: --resume continues the run in the folder, --overwrite "
+                         "starts it afresh; give one")
     cfg = _config(args, defaults=_RUN_DEFAULTS)
     key = jax.random.PRNGKey(args.seed)
     path = os.path.join(args.out, "checkpoint.msgpack")
@@ -171,7 +202,13 @@ def _run(args: argparse.Namespace) -> None:
         _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": args.seed},
                                    RUN_FILES, args.overwrite), "--overwrite")
         if os.path.exists(path) and not args.resume:
-            print(f"starting afresh (pass --resume to continue the checkpoint in {args.out})")
+            if not args.overwrite:
+                raise ValueError(f"{args.out!r} holds a checkpoint of this run: `{_command(args, add=('--resume',))}`"
+                                 " continues it; --overwrite starts afresh (removing it)")
+            ours = [os.path.join(args.out, n) for n in folders.written(args.out) if n in RUN_FILES]
+            for p in ours:
+                os.remove(p)
+            _say_removed(ours, "--overwrite (starting afresh)")
 
         def start(state: State, metrics: dict[str, np.ndarray]) -> None:
             if metrics:
@@ -181,12 +218,16 @@ def _run(args: argparse.Namespace) -> None:
                 progress.compiling(args.cache)
 
         began = time.perf_counter()
-        state, metrics = checkpoint.run_with_checkpoints(
-            key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
-            on_compiled=progress.compiled, on_chunk=lambda s, m: progress.chunk(int(s.generation), m))
+        try:
+            state, metrics = checkpoint.run_with_checkpoints(
+                key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
+                on_compiled=progress.compiled, on_chunk=lambda s, m: progress.chunk(int(s.generation), m))
+        except checkpoint.Refused as e:
+            fresh = _command(args, drop=("--resume",), add=("--overwrite",))
+            raise ValueError(f"{e}; the run cannot continue from it: `{fresh}` starts it afresh") from e
         meta = {"config": cfg.to_dict(), "seed": args.seed, "key": np.asarray(key).tolist(),
                 "provenance": provenance()}
-        results.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
+        folders.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
         n = int(state.repertoire.count)
         rep = jax.device_get(state.repertoire)
         description = json.dumps(meta)
@@ -213,11 +254,23 @@ def _sweep(args: argparse.Namespace) -> None:
         _say_removed(folders.claim(args.out, "sweep", {}, results.FILES, args.overwrite), "--overwrite")
         # Every conflict is found before anything runs, not after hours of other batches.
         clash = results.conflicts(args.out, batches)
-        if clash and not args.overwrite:
-            raise ValueError(f"{args.out!r} refused: {results.describe(clash)}. Pass --overwrite to replace those "
+        differ = {s: c for s, c in clash.items() if not c.stale}
+        stale = {s: c for s, c in clash.items() if c.stale}
+        if differ and not args.overwrite:
+            raise ValueError(f"{args.out!r} refused: {results.describe(differ)}. Pass --overwrite to replace those "
                              "batches, or write to another folder")
-        results.remove_batches(args.out, list(clash))
-        _say_removed([s + ".json" for s in clash], "--overwrite")
+        if stale and not (args.rerun_stale or args.overwrite):
+            raise ValueError(f"{args.out!r} refused: {results.describe(stale)}. Pass --rerun-stale to run those "
+                             "batches again with this implementation, or write to another folder")
+        _say_removed(results.remove_batches(list(differ)), "--overwrite")
+        _say_removed(results.remove_batches(list(stale)), "stale (another implementation)")
+        planned = {results.stem(args.out, cfg) for cfg, _ in batches}
+        for stem, e in results.scan(args.out)[1].items():
+            if stem in planned:
+                kept = folders.set_aside(results.batch_files(stem))
+                print(f"{e}\nits batch is run again; its files are kept as {', '.join(kept)}")
+            else:
+                print(f"warning: {e}")
         for cfg, keys in batches:
             label = f"{cfg.task} {cfg.algorithm}, {len(keys)} seeds: "
             if results.is_done(args.out, cfg, keys):
@@ -241,9 +294,19 @@ def _sweep(args: argparse.Namespace) -> None:
 
 def _adapt(args: argparse.Namespace) -> None:
     path = os.path.join(args.dir, results.ADAPTATION)
-    with folders.lock(args.dir):
-        found = folders.read_json(path) if os.path.exists(path) else {}
+    with folders.lock(args.dir, create=False):
+        try:
+            found = results.read_adaptation(args.dir)
+        except folders.Damaged as e:
+            if args.tasks:
+                raise ValueError(f"{e} (it holds the other tasks' results)") from e
+            kept = folders.set_aside([e.path])
+            print(f"{e}\nwritten anew with every task; the damaged file is kept as {kept[0]}")
+            found = {}
         tasks = args.tasks or [t for t, by in results.load_runs(args.dir).items() if "mqd" in by]
+        if not tasks:
+            raise ValueError(f"{args.dir!r} holds no M-QD runs to adapt: run `mqd sweep --algorithms mqd --out "
+                             f"{args.dir}` first")
         for task in tasks:
             cfg, keys, states = results.load_states(args.dir, task)
             goals = np.stack([adaptation.reachable_goals(get_task(cfg), args.goals, np.random.default_rng(i))
@@ -261,7 +324,7 @@ def _adapt(args: argparse.Namespace) -> None:
             found[task] = {"source": results.source(args.dir, task), "config": cfg.to_dict(),
                            "keys": keys, "provenance": provenance(), "methods": methods}
             results.remove_derived(args.dir)
-            results.write_json(path, found)
+            folders.write_json(path, found)
         _plot(args.dir)
 
 
@@ -273,7 +336,11 @@ def _plot(out: str) -> None:
     for task, by_alg in runs.items():
         plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg,
                       os.path.join(out, f"fig2_{results.file_name(task)}.png"))
-    found, stale = results.adaptation(out)
+    try:
+        found, stale = results.adaptation(out)
+    except folders.Damaged as e:
+        print(f"left out the adaptation results: {e}")
+        found, stale = {}, []
     if stale:
         print(f"left out the adaptation results of {', '.join(stale)}: their M-QD runs changed since `mqd adapt`; "
               f"run `mqd adapt {out} --tasks {' '.join(stale)}` again")
@@ -287,15 +354,20 @@ def _render(args: argparse.Namespace) -> None:
     """A skill of a `mqd run` folder as an animated GIF: the robot executing it, or a 2D task's behavior path."""
     # Offscreen OpenGL for MuJoCo's renderer unless the user chose a platform (read when mujoco is imported).
     os.environ.setdefault("MUJOCO_GL", "egl")
+    if not os.path.isdir(args.dir):
+        raise ValueError(f"{args.dir!r} does not exist: give the folder a `mqd run` wrote")
     files = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
     if not all(os.path.exists(f) for f in files):
         raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (metrics.json, repertoire.npz)")
-    try:
-        cfg = Config.from_dict(folders.read_json(os.path.join(args.dir, "metrics.json"))["config"])
-        with np.load(os.path.join(args.dir, "repertoire.npz")) as f:
-            actions, behaviors = f["actions"], f["behaviors"]
-    except (OSError, KeyError) as e:
-        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (metrics.json, repertoire.npz): {e}") from e
+    repair = f"the `mqd run` that made it, with --resume --out {args.dir}, writes it again from its checkpoint"
+    saved = folders.read_json(files[0], repair)
+    arrays = folders.read_npz(files[1], repair)
+    if "config" not in saved or not {"actions", "behaviors"} <= set(arrays):
+        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no config, actions or behaviors): {repair}")
+    cfg = Config.from_dict(saved["config"])
+    actions, behaviors = arrays["actions"], arrays["behaviors"]
+    if args.goal is not None and not all(math.isfinite(g) for g in args.goal):
+        raise ValueError(f"--goal {' '.join(map(str, args.goal))} is invalid: expected finite numbers")
     if args.goal is not None:
         index = int(np.argmin(np.linalg.norm(behaviors - np.asarray(args.goal), axis=1)))
     elif 0 <= args.index < len(actions):
@@ -317,7 +389,7 @@ def _render(args: argparse.Namespace) -> None:
 
 
 def _locked_plot(args: argparse.Namespace) -> None:
-    with folders.lock(args.dir):
+    with folders.lock(args.dir, create=False):
         _plot(args.dir)
 
 
@@ -330,14 +402,17 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
                             "~/.cache/mqd-jax)")
     writes = argparse.ArgumentParser(add_help=False)
     writes.add_argument("--overwrite", action="store_true",
-                        help="replace results of another config in the folder (otherwise refused)")
+                        help="replace results of another config in the folder (otherwise refused); removes only "
+                             "files mqd-jax wrote there")
 
     run = sub.add_parser("run", parents=[cache, writes], help="run one search and write metrics, repertoire and a plot")
     _add_config_flags(run, defaults=_RUN_DEFAULTS)
-    run.add_argument("--seed", type=int, default=0, help="the run's key is PRNGKey(seed) (default: %(default)s)")
+    run.add_argument("--seed", type=int, default=0,
+                     help=f"the run's key is PRNGKey(seed), 0 <= seed < {SEEDS} (default: %(default)s)")
     run.add_argument("--chunk", type=_positive, default=25,
                      help="generations per chunk: one progress line and one checkpoint each (default: %(default)s)")
-    run.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
+    run.add_argument("--resume", action="store_true",
+                     help="continue from OUT/checkpoint.msgpack (without it, a checkpoint in OUT is refused)")
     run.add_argument("--out", default="results/run", help="results folder (default: %(default)s)")
 
     sw = sub.add_parser("sweep", parents=[cache, writes],
@@ -351,6 +426,9 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
                     help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")
     sw.add_argument("--chunk", type=_positive, default=25,
                     help="generations per compiled chunk, one progress line each (default: %(default)s)")
+    sw.add_argument("--rerun-stale", action="store_true",
+                    help="run again the batches in the folder written by another mqd-jax version or another "
+                         "implementation of the task (otherwise refused)")
     sw.add_argument("--out", default="results/sweep",
                     help="results folder; batches already in it (same config and seeds) are skipped "
                          "(default: %(default)s)")
@@ -381,14 +459,17 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], None]] = {
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser, commands = _parser()
+    parser, _ = _parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
-    args.cache = compilation_cache(getattr(args, "cache", False))
+    args.argv = argv
+    args.cache = compilation_cache(getattr(args, "cache", False))[1]
     args.interrupted = lambda: "interrupted"
     try:
         _COMMANDS[args.command](args)
-    except ValueError as e:  # invalid configuration or input: say what, with the subcommand's usage, no traceback
-        commands[args.command].error(str(e))
+    except ValueError as e:  # invalid configuration or input: one line that says what, no traceback
+        print(f"mqd {args.command}: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     except KeyboardInterrupt:
         print(f"\n{args.interrupted()}", file=sys.stderr)
         raise SystemExit(130) from None

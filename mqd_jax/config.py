@@ -30,7 +30,7 @@ from mqd_jax import registry
 from mqd_jax.checks import is_int, is_real
 from mqd_jax.emitters import Emitter
 from mqd_jax.model_emitter import ANCHORS
-from mqd_jax.task import Task
+from mqd_jax.task import Task, check_task
 
 # The named emitters `Config.algorithm` may give (built by `mqd_jax.presets`).
 PRESETS = ("mqd", "mqd-paper", "qd", "random")
@@ -169,6 +169,8 @@ class Config:
         _check(isinstance(self.task, Task) or (isinstance(self.task, str) and registry.is_task(self.task)), "task",
                self.task, f"a Task, one of the registered tasks {sorted(registry.registered_tasks())} or a plugin "
                "'package.module:factory'")
+        if isinstance(self.task, Task):
+            check_task(self.task, type(self.task).__name__)
         _check(isinstance(self.algorithm, Emitter) or self.algorithm in PRESETS, "algorithm", self.algorithm,
                f"an Emitter or one of the presets {PRESETS}")
         for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1),

@@ -6,11 +6,13 @@ so) when matplotlib is not installed: results files never depend on it.
 
 from __future__ import annotations
 
+import io
 from typing import Any
 
 import numpy as np
 
 from mqd_jax.adaptation import METHODS
+from mqd_jax.folders import write_atomically
 from mqd_jax.results import NAMES, Runs
 from mqd_jax.task import Task
 
@@ -29,9 +31,12 @@ def pyplot() -> Any:
 
 
 def save(fig: Any, path: str, description: str | None = None) -> str:
-    """Writes `fig` to `path` (PNG, 100 dpi; `description` goes into the PNG's Description text) and says so."""
+    """Writes `fig` to `path` atomically (PNG, 100 dpi; `description` goes into the PNG's Description text) and
+    says so."""
     fig.tight_layout()
-    fig.savefig(path, dpi=100, metadata={"Description": description} if description else None)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100, metadata={"Description": description} if description else None)
+    write_atomically(path, buffer.getvalue())
     pyplot().close(fig)  # pyplot keeps every open figure alive: a long sweep would hold them all
     print(f"wrote {path}")
     return path
@@ -139,6 +144,8 @@ def write_animation(frames: np.ndarray, path: str, fps: float = 12.0) -> str:
     from PIL import Image
 
     images = [Image.fromarray(f) for f in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    buffer = io.BytesIO()
+    images[0].save(buffer, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    write_atomically(path, buffer.getvalue())
     print(f"wrote {path} ({len(frames)} frames)")
     return path

@@ -16,6 +16,8 @@ import sys
 
 import jax
 
+from mqd_jax.version import __version__
+
 PACKAGES = ("mqd-jax", "jax", "jaxlib", "flax", "optax", "chex", "numpy", "mujoco", "mujoco-mjx")
 
 
@@ -26,6 +28,8 @@ def machine() -> str:
 
 
 def _version(package: str) -> str | None:
+    if package == "mqd-jax":  # this code's own version, even where an older install's metadata lingers
+        return __version__
     try:
         return importlib.metadata.version(package)
     except importlib.metadata.PackageNotFoundError:

@@ -13,6 +13,15 @@ The registry is filled without this package importing any task package:
 * a plugin name `"package.module:factory"`: the module is imported and
   `factory` registered under that name the first time it is used;
 * `register(name, factory)` from Python.
+
+A name stands for one implementation. Registering a name that is already
+taken (a built-in, an entry point of another package, a plugin or an earlier
+`register`) raises a ValueError naming both sources; `register(name, factory,
+replace=True)` replaces it on purpose. Two installed packages whose entry
+points share a name make that name unusable until one of them is chosen with
+`register(..., replace=True)` (or uninstalled): the error names both.
+`source(name)` says which implementation a name stands for; results files
+record it, and a results folder refuses to mix implementations of one task.
 """
 
 from __future__ import annotations
@@ -23,25 +32,73 @@ import importlib.metadata
 from collections.abc import Callable
 from typing import Any
 
-from mqd_jax.task import Task
+from mqd_jax.task import Task, check_task
+from mqd_jax.version import __version__
 
 ENTRY_POINT_GROUP = "mqd_jax.tasks"
+BUILT_IN = "mqd-jax"  # the distribution whose entry points are the built-in tasks
 _FACTORIES: dict[str, Callable[..., Task]] = {}
+_SOURCES: dict[str, str] = {}  # how each name in _FACTORIES was registered
 # (name, options) of every task `make` built, by the task's id: how a config names its task in a results file.
 _MADE: dict[int, tuple[str, dict[str, Any]]] = {}
 
 
-def register(name: str, factory: Callable[..., Task]) -> None:
-    """Registers a task under `name` (usable as `Config(task=name)`)."""
-    if name in registered_tasks():
-        raise ValueError(f"task {name!r} is already registered")
-    _FACTORIES[name] = factory
+def _describe(factory: Callable[..., Task]) -> str:
+    return f"{getattr(factory, '__module__', '?')}:{getattr(factory, '__qualname__', repr(factory))}"
+
+
+def register(name: str, factory: Callable[..., Task], replace: bool = False, _source: str | None = None) -> None:
+    """Registers a task under `name` (usable as `Config(task=name)`).
+
+    Raises ValueError, naming both sources, if `name` is already registered, unless `replace` (on purpose).
+    """
+    if not callable(factory):
+        raise ValueError(f"task {name!r}: the factory {factory!r} is not callable")
+    new = _source or f"registry.register ({_describe(factory)})"
+    if not replace and name in registered_tasks():
+        raise ValueError(f"task {name!r} is already registered by {_sources(name)}; registering it again by {new} "
+                         "would replace it: pass replace=True to do so on purpose, or choose another name")
+    _FACTORIES[name], _SOURCES[name] = factory, new
+    _make.cache_clear()
+
+
+def _entry_source(entry: importlib.metadata.EntryPoint) -> str:
+    dist = entry.dist
+    if dist is not None and dist.name == BUILT_IN:
+        return f"built-in ({BUILT_IN} {__version__}, {entry.value})"
+    owner = f"{dist.name} {dist.version}" if dist is not None else "an unknown distribution"
+    return f"entry point {entry.value} of {owner}"
 
 
 @functools.cache
-def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:
-    """The installed packages' `mqd_jax.tasks` entry points by name (read once per process)."""
-    return {entry.name: entry for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
+def _entry_points() -> dict[str, tuple[importlib.metadata.EntryPoint, ...]]:
+    """The installed packages' `mqd_jax.tasks` entry points by name, several where packages clash (read once
+    per process; a distribution installed twice on the path counts once)."""
+    found: dict[str, dict[str, importlib.metadata.EntryPoint]] = {}
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        found.setdefault(entry.name, {}).setdefault(_entry_source(entry), entry)
+    return {name: tuple(by_source.values()) for name, by_source in found.items()}
+
+
+def _sources(name: str) -> str:
+    """The source(s) `name` is registered by, in words."""
+    if name in _FACTORIES:
+        return _SOURCES[name]
+    return " and ".join(_entry_source(e) for e in _entry_points().get(name, ()))
+
+
+def source(name: str) -> str:
+    """Which implementation the task `name` stands for: "built-in (mqd-jax VERSION, module:factory)", "entry
+    point module:factory of DIST VERSION", "plugin module:factory" or "registry.register (module:factory)".
+
+    Raises ValueError if two installed packages register `name` and neither was chosen.
+    """
+    if name not in _FACTORIES and len(_entry_points().get(name, ())) > 1:
+        raise ValueError(f"task {name!r} is registered twice: by {_sources(name)}; choose one with "
+                         f"mqd_jax.registry.register({name!r}, factory, replace=True), or uninstall the other")
+    if not is_task(name):
+        raise ValueError(f"unknown task {name!r}")
+    return _sources(name)
 
 
 def _register_plugin(name: str) -> bool:
@@ -55,7 +112,7 @@ def _register_plugin(name: str) -> bool:
         raise ValueError(f"task {name!r}: cannot load the factory {attribute!r} from module {module!r} ({e})") from e
     if not callable(factory):
         raise ValueError(f"task {name!r}: {module}.{attribute} is not callable")
-    register(name, factory)
+    register(name, factory, _source=f"plugin {name}")
     return True
 
 
@@ -74,12 +131,24 @@ def make(name: str, **options: Any) -> Task:
     if not is_task(name):
         raise ValueError(f"unknown task {name!r}; registered: {sorted(registered_tasks())}, or give "
                          "'package.module:factory'")
+    source(name)  # refuses a name two packages register
     return _make(name, tuple(sorted(options.items())))
+
+
+def _load(name: str) -> Callable[..., Task]:
+    if name in _FACTORIES:
+        return _FACTORIES[name]
+    (entry,) = _entry_points()[name]
+    try:
+        return entry.load()
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"task {name!r}: cannot load its factory {entry.value} ({_entry_source(entry)}): "
+                         f"{type(e).__name__}: {e}; reinstall that package, or fix its entry point") from e
 
 
 @functools.cache
 def _make(name: str, options: tuple[tuple[str, Any], ...]) -> Task:
-    factory = _FACTORIES[name] if name in _FACTORIES else _entry_points()[name].load()
+    factory = _load(name)
     try:
         task = factory(**dict(options))
     except Exception as e:  # a user's factory may fail in any way: say which task it was
@@ -87,6 +156,7 @@ def _make(name: str, options: tuple[tuple[str, Any], ...]) -> Task:
         raise ValueError(f"task {name!r}: its factory failed{given} ({type(e).__name__}: {e})") from e
     if not isinstance(task, Task):
         raise ValueError(f"task {name!r}: its factory returned a {type(task).__name__}, not a mqd_jax.Task")
+    check_task(task, name)
     _MADE[id(task)] = (name, dict(options))
     return task
 

@@ -18,10 +18,15 @@ One folder per sweep. For every task and algorithm run:
 markdown and PNG built from these files only, so a folder can be copied and
 re-tabulated anywhere.
 
+Every JSON and npz file carries its checksum (`mqd_jax.folders`), verified on
+every read; each batch also records its `implementation`: the mqd-jax version
+and which implementation of the task ran (`mqd_jax.registry.source`).
+
 A folder never mixes configs: the batches of one task share their config (but
-for the algorithm) and their seed keys (`conflicts` finds batches that do not;
-`load_runs` refuses such a folder), and adaptation results of M-QD runs that
-have since changed are left out of the tables and figures (`adaptation`).
+for the algorithm), their seed keys and their implementation (`scan` finds
+batches that do not, and damaged ones; `load_runs` refuses such a folder), and
+adaptation results of M-QD runs that have since changed are left out of the
+tables and figures (`adaptation`).
 """
 
 from __future__ import annotations
@@ -39,27 +44,29 @@ import numpy as np
 
 from mqd_jax import checkpoint, presets, registry
 from mqd_jax.config import PRESETS, Config, upgraded
-from mqd_jax.folders import differences, read_json, write_atomically, write_npz
+from mqd_jax.folders import Damaged, differences, read_json, read_npz, write_atomically, write_json, write_npz
 from mqd_jax.provenance import machine, provenance
 from mqd_jax.run import State, get_task
 from mqd_jax.stats import mann_whitney
+from mqd_jax.version import __version__
 
 NAMES = {"mqd": "M-QD", "mqd-paper": "M-QD (paper's filter)", "qd": "QD", "random": "RANDOM"}
 # The paper's name (`Task.paper_coverage`'s key) of each preset that reproduces one of its algorithms.
 PAPER_ALGORITHM = {"mqd-paper": "mqd", "qd": "qd", "random": "random"}
 # The files a sweep folder holds (glob patterns, for `folders.claim`), and those made from them.
-FILES = ("*_*.json", "*_*.npz", "*_mqd.msgpack", "adaptation.json")
 DERIVED = ("table1.md", "adaptation.md", "fig2_*.png", "fig3_adaptation_error.png", "fig4_adaptation_steps.png")
 ADAPTATION = "adaptation.json"
+FILES = (*(f"*_{a}.{ext}" for a in PRESETS for ext in ("json", "npz")), "*_mqd.msgpack", ADAPTATION, *DERIVED)
+# What a batch's JSON holds besides its metrics.
+BATCH_KEYS = ("config", "keys", "implementation", "provenance", "wall_s", "machine", "metrics")
 
 
 def write_markdown(lines: list[str], path: str) -> None:
-    """Prints a markdown report and writes it to `path` (creating its folder)."""
+    """Prints a markdown report and writes it to `path` atomically (creating its folder)."""
     text = "\n".join(lines)
     print(text)
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    with open(path, "w") as f:
-        f.write(text + "\n")
+    write_atomically(path, (text + "\n").encode())
 
 
 def file_name(task: str) -> str:
@@ -71,33 +78,59 @@ def _stem(out: str, task: str, algorithm: str) -> str:
     return os.path.join(out, f"{file_name(task)}_{algorithm}")
 
 
-def write_json(path: str, payload: Any) -> None:
-    """Writes strict JSON (NaN as null) atomically: a crash leaves the old file or the new one."""
-    def strict(x: Any) -> Any:
-        if isinstance(x, dict):
-            return {k: strict(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [strict(v) for v in x]
-        if isinstance(x, np.ndarray):
-            return strict(x.tolist())
-        if isinstance(x, float) and x != x:
-            return None
-        return x.item() if isinstance(x, np.generic) else x
-
-    write_atomically(path, json.dumps(strict(payload)).encode())
+def stem(out: str, cfg: Config) -> str:
+    """The path, without extension, of the batch of `cfg`'s runs in `out`."""
+    return _stem(out, cfg.task_name, cfg.algorithm_name)
 
 
-def _batches(out: str) -> list[tuple[str, dict[str, Any]]]:
-    """(stem, saved JSON) of every complete batch in `out` (a JSON with its npz beside it)."""
-    found = []
-    for path in sorted(glob.glob(os.path.join(glob.escape(out), "*_*.json"))):
-        if os.path.exists(path[:-len(".json")] + ".npz"):
-            saved = read_json(path)
-            if not (isinstance(saved, dict) and {"config", "keys", "metrics"} <= set(saved)):
-                raise ValueError(f"{path!r} is not a batch of `mqd sweep` (no config, keys or metrics)")
-            saved["config"] = upgraded(saved["config"])
-            found.append((path[:-len(".json")], saved))
-    return found
+def implementation(cfg: Config) -> dict[str, str]:
+    """{"mqd_jax": the version, "task": which implementation of the task} that runs of `cfg` are made by."""
+    named = registry.name_of(cfg.task)
+    task = registry.source(named[0]) if named else f"{type(cfg.task).__module__}.{type(cfg.task).__qualname__}"
+    return {"mqd_jax": __version__, "task": task}
+
+
+def repair(out: str, stem: str) -> str:
+    """How to repair a damaged batch `stem` of the folder `out`: the command that re-runs it."""
+    task, _, algorithm = os.path.basename(stem).rpartition("_")
+    return (f"`mqd sweep --tasks {task} --algorithms {algorithm} --out {out}` with the flags that made it re-runs it "
+            "(a damaged batch is re-run)")
+
+
+def _read_batch(out: str, stem: str) -> dict[str, Any]:
+    """The saved JSON of the batch `stem`, every file of it verified (checksums, contents); raises `Damaged`."""
+    fix = repair(out, stem)
+    saved = read_json(stem + ".json", fix)
+    missing = [k for k in BATCH_KEYS if k not in saved]
+    if missing:
+        raise Damaged(stem + ".json", f"lacks {', '.join(map(repr, missing))} (not a complete batch of `mqd sweep`)",
+                      fix)
+    if not os.path.exists(stem + ".npz"):
+        raise Damaged(stem + ".npz", "is missing", fix)
+    arrays = read_npz(stem + ".npz", fix)
+    if "meta" not in arrays or json.loads(str(arrays["meta"])).get("keys") != saved["keys"]:
+        raise Damaged(stem + ".npz", f"does not belong to {os.path.basename(stem)}.json (other keys)", fix)
+    if stem.endswith("_mqd"):
+        try:
+            checkpoint.read(stem + ".msgpack")
+        except ValueError as e:
+            raise Damaged(stem + ".msgpack", f"is missing or damaged ({e})", fix) from e
+    saved["config"] = upgraded(saved["config"])
+    return saved
+
+
+def scan(out: str) -> tuple[list[tuple[str, dict[str, Any]]], dict[str, Damaged]]:
+    """The batches in `out`: [(stem, saved JSON)] of the sound ones, and {stem: Damaged} of the damaged ones (a
+    file unreadable, missing, altered, or without checksum)."""
+    found, damaged = [], {}
+    patterns = [f"*_{a}.{ext}" for a in PRESETS for ext in ("json", "npz")]
+    names = {os.path.basename(p) for pattern in patterns for p in glob.glob(os.path.join(glob.escape(out), pattern))}
+    for stem in sorted({os.path.join(out, n.rsplit(".", 1)[0]) for n in names}, key=lambda s: s + ".json"):
+        try:
+            found.append((stem, _read_batch(out, stem)))
+        except Damaged as e:
+            damaged[stem] = e
+    return found, damaged
 
 
 def _comparable(cfg: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
@@ -107,8 +140,19 @@ def _comparable(cfg: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in cfg.items() if k != "algorithm" and k not in unread}
 
 
-def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], keys: list) -> dict[str, str]:
-    """{stem: what differs} for each of `batches` of the same task as `cfg` with another config or other keys."""
+@dataclasses.dataclass(frozen=True)
+class Clash:
+    """Why a batch may not sit beside another of its task: `stale` (written by another mqd-jax version or another
+    implementation of the task: `--rerun-stale` re-runs it) or not (another config or other keys: `--overwrite`)."""
+
+    stale: bool
+    why: str
+
+
+def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], keys: list,
+             made_by: dict[str, str]) -> dict[str, Clash]:
+    """{stem: Clash} for each of `batches` of the same task as `cfg` with another config, other keys, or another
+    implementation (`made_by`) than theirs."""
     found = {}
     for stem, saved in batches:
         if saved["config"].get("task") != cfg["task"]:
@@ -117,42 +161,53 @@ def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], key
         if saved["keys"] != keys:
             differ = ", ".join(filter(None, [differ, f"{len(saved['keys'])} other seed keys, now {len(keys)}"]))
         if differ:
-            found[stem] = differ
+            found[stem] = Clash(False, differ)
+        elif saved["implementation"] != made_by:
+            found[stem] = Clash(True, differences(saved["implementation"], made_by))
     return found
 
 
-def conflicts(out: str, planned: list[tuple[Config, np.ndarray]]) -> dict[str, str]:
-    """{stem: what differs} for each batch in `out` that one of the `planned` batches (config, keys) may not sit
-    beside. The batches of one task must share their config (the algorithm aside) and their keys.
-
-    Reads the folder once, however many batches are planned.
+def conflicts(out: str, planned: list[tuple[Config, np.ndarray]]) -> dict[str, Clash]:
+    """{stem: Clash} for each sound batch in `out` that one of the `planned` batches (config, keys) may not sit
+    beside: the batches of one task must share their config (the algorithm aside), their keys and their
+    implementation. Reads the folder once, however many batches are planned.
     """
-    batches = _batches(out)
-    return {stem: differ for cfg, keys in planned
-            for stem, differ in _clashes(batches, cfg.to_dict(), np.asarray(keys).tolist()).items()}
+    batches, _ = scan(out)
+    return {stem: clash for cfg, keys in planned
+            for stem, clash in _clashes(batches, cfg.to_dict(), np.asarray(keys).tolist(), implementation(cfg)).items()}
 
 
-def describe(clash: dict[str, str]) -> str:
+def describe(clash: dict[str, Clash]) -> str:
     """'<batch> differs (<fields>); ...' for the clashing batches of `conflicts`."""
-    return "; ".join(f"{os.path.basename(stem)} differs ({differ})" for stem, differ in clash.items())
+    return "; ".join(f"{os.path.basename(stem)} {'is stale' if c.stale else 'differs'} ({c.why})"
+                     for stem, c in clash.items())
 
 
-def remove_batches(out: str, stems: list[str]) -> None:
-    """Removes these batches (JSON, npz, M-QD states); adaptation results of removed M-QD runs turn stale."""
-    for stem in stems:
-        for ext in (".json", ".npz", ".msgpack"):
-            if os.path.exists(stem + ext):
-                os.remove(stem + ext)
+def batch_files(stem: str) -> list[str]:
+    """The files of the batch `stem` that exist (JSON, npz, M-QD states)."""
+    return [stem + ext for ext in (".json", ".npz", ".msgpack") if os.path.exists(stem + ext)]
+
+
+def remove_batches(stems: list[str]) -> list[str]:
+    """Removes these batches (JSON, npz, M-QD states); returns the files removed. Adaptation results of removed
+    M-QD runs turn stale."""
+    removed = [p for stem in stems for p in batch_files(stem)]
+    for path in removed:
+        os.remove(path)
+    return removed
 
 
 def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
-    """Whether `out` already holds the runs of `cfg` from exactly these keys."""
-    path = _stem(out, cfg.task_name, cfg.algorithm_name) + ".json"
-    if not os.path.exists(path):
+    """Whether `out` holds the sound runs of `cfg` from exactly these keys, made by this implementation."""
+    stem = _stem(out, cfg.task_name, cfg.algorithm_name)
+    if not os.path.exists(stem + ".json"):
         return False
-    saved = read_json(path)
-    return (upgraded(saved.get("config", {})) == cfg.to_dict()
-            and saved.get("keys") == np.asarray(keys).tolist())
+    try:
+        saved = _read_batch(out, stem)
+    except Damaged:
+        return False
+    return (saved["config"] == cfg.to_dict() and saved["keys"] == np.asarray(keys).tolist()
+            and saved["implementation"] == implementation(cfg))
 
 
 def remove_derived(out: str) -> None:
@@ -180,7 +235,8 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
     os.makedirs(out, exist_ok=True)
     remove_derived(out)
     stem = _stem(out, cfg.task_name, cfg.algorithm_name)
-    meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "provenance": provenance()}
+    meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "implementation": implementation(cfg),
+            "provenance": provenance()}
     rep = jax.device_get(states.repertoire)
     m = max(int(rep.count.max()), 1)
     write_npz(stem + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
@@ -223,32 +279,29 @@ def task_order(task: str) -> int:
     return (*registry.registered_tasks(), task).index(task)
 
 
-def _load_npz(path: str) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path) as f:
-            return {k: f[k] for k in ("count", "behaviors")}
-    except (OSError, ValueError, KeyError) as e:
-        raise ValueError(f"cannot read {path!r}: {e}") from e
-
-
 def load_runs(out: str) -> dict[str, dict[str, Runs]]:
-    """{task: {algorithm: Runs}} for every completed batch of runs in `out` (tasks in registry order).
+    """{task: {algorithm: Runs}} for every batch of runs in `out` (tasks in registry order).
 
-    Raises ValueError, naming the files, for damaged files and for batches of one
-    task that differ in config (but for the algorithm) or seed keys.
+    Raises ValueError, naming the file and the command that re-runs it, for a
+    damaged batch (a file unreadable, missing, altered or without checksum), and
+    for batches of one task that differ in config (but for the algorithm), seed
+    keys or implementation (mqd-jax version, the task's source).
     """
     found: dict[str, dict[str, Runs]] = {}
-    batches = _batches(out)
+    batches, damaged = scan(out)
+    if damaged:
+        raise next(iter(damaged.values()))
     for stem, saved in batches:
         try:
             cfg = Config.from_dict(saved["config"])
         except (TypeError, ValueError) as e:
             raise ValueError(f"{stem + '.json'!r} holds an invalid config: {e}") from e
-        clash = _clashes(batches, saved["config"], saved["keys"])
+        clash = _clashes(batches, saved["config"], saved["keys"], saved["implementation"])
         if clash:
             raise ValueError(f"{out!r} mixes runs that cannot be compared: beside {os.path.basename(stem)}, "
-                             f"{describe(clash)}")
-        rep = _load_npz(stem + ".npz")
+                             f"{describe(clash)}; `mqd sweep` with --rerun-stale (another implementation) or "
+                             "--overwrite (another config) in this folder repairs it")
+        rep = read_npz(stem + ".npz", repair(out, stem))
         metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
         found.setdefault(cfg.task_name, {})[cfg.algorithm] = Runs(
             cfg, np.asarray(saved["keys"], np.uint32), saved["wall_s"], saved["machine"], metrics, rep["count"],
@@ -261,12 +314,13 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
 
 def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     """The config, seed keys [S, 2] and final M-QD states (leading axis S) of `task` in `out`."""
-    path = _stem(out, task, "mqd")
-    if not os.path.exists(path + ".json"):
-        raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task}` with M-QD first")
-    saved = read_json(path + ".json")
+    stem = _stem(out, task, "mqd")
+    if not os.path.exists(stem + ".json"):
+        raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task} --out {out}` with "
+                         "M-QD first")
+    saved = _read_batch(out, stem)
     cfg, keys = Config.from_dict(saved["config"]), np.asarray(saved["keys"], np.uint32)
-    state, _ = checkpoint.load(path + ".msgpack", cfg, keys)
+    state, _ = checkpoint.load(stem + ".msgpack", cfg, keys)
     return cfg, keys, state
 
 
@@ -276,15 +330,20 @@ def source(out: str, task: str) -> str:
         return hashlib.sha256(f.read()).hexdigest()
 
 
+def read_adaptation(out: str) -> dict[str, Any]:
+    """The contents of `out`'s adaptation.json ({} if none); raises `Damaged` for a damaged one."""
+    path = os.path.join(out, ADAPTATION)
+    return read_json(path, f"`mqd adapt {out}` (every task) writes it anew") if os.path.exists(path) else {}
+
+
 def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
     """The adaptation results in `out` whose M-QD runs are still there unchanged, and the tasks left out.
 
-    Returns ({task: {method: results}} in registry order, [tasks whose results are stale]).
+    Returns ({task: {method: results}} in registry order, [tasks whose results are stale]). Raises `Damaged`
+    for a damaged adaptation.json.
     """
-    path = os.path.join(out, ADAPTATION)
-    found = read_json(path) if os.path.exists(path) else {}
     current, stale = {}, []
-    for task, entry in found.items():
+    for task, entry in read_adaptation(out).items():
         fresh = (isinstance(entry, dict) and os.path.exists(_stem(out, task, "mqd") + ".msgpack")
                  and entry.get("source") == source(out, task))
         if fresh:

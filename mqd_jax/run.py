@@ -146,12 +146,15 @@ class Candidates:
         chose); the others' results are ignored.
       key: PRNG key for the rollouts (for stochastic tasks).
       info: the emitter's data about its proposal, handed back to its update.
+      generation: int32, the generation of the state they were asked for: `tell`
+        refuses them for a state of another generation.
     """
 
     actions: jax.Array
     rollout: jax.Array
     key: jax.Array
     info: Any
+    generation: jax.Array
 
 
 def _checked(state: State, cfg: Config, params: Params | None) -> Params:
@@ -193,7 +196,8 @@ def _propose(state: State, cfg: Config, params: Params) -> Candidates:
     if shapes != ((pop, task.action_dim), (pop,), jnp.bool_):
         raise ValueError(f"{emitter!r}.propose returned actions {shapes[0]} and rollout {shapes[1]} {shapes[2]}; "
                          f"expected ({pop}, {task.action_dim}) and ({pop},) bool")
-    return Candidates(proposal.actions.astype(jnp.float32), proposal.rollout, k_rollout, proposal.info)
+    return Candidates(proposal.actions.astype(jnp.float32), proposal.rollout, k_rollout, proposal.info,
+                      state.generation)
 
 
 def _evaluate(candidates: Candidates, task: Task) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -291,7 +295,8 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
 
     Args:
       state: the state `ask` was called with.
-      candidates: what `ask` returned.
+      candidates: what `ask` returned (refused, with a ValueError, for a state of
+        another generation: candidates of an older `ask`).
       behaviors: [P, d], qualities: [P], valid: [P] bool: the rollouts' results
         (arrays or nested lists); rows that `candidates.rollout` leaves out are
         ignored (any value).
@@ -300,6 +305,10 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
       The next state (key advanced) and the generation's metrics (see `run_mqd`).
     """
     params = _checked(state, cfg, params)
+    asked, now = candidates.generation, state.generation
+    if not any(isinstance(x, jax.core.Tracer) for x in (asked, now)) and int(asked) != int(now):
+        raise ValueError(f"tell: these candidates were asked at generation {int(asked)}, the state is at generation "
+                         f"{int(now)}: tell each ask's candidates once, with the state ask was given, then ask again")
     behaviors, qualities, valid = (jnp.asarray(x) for x in (behaviors, qualities, valid))
     _check_results(behaviors, qualities, valid, cfg.population_size, get_task(cfg).behavior_dim)
     return _tell(state, candidates, behaviors, qualities, valid, cfg, params)

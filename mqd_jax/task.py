@@ -136,3 +136,54 @@ def check_outputs(task: Task, name: str, batch: int) -> None:
             o.shape == s and jnp.issubdtype(o.dtype, k) for o, s, k in zip(out, shapes, kinds, strict=True))):
         got = jax.tree.map(lambda o: f"{o.dtype}{list(o.shape)}", out)
         raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) must return {want}; got {got}")
+
+
+# Behavior spaces the library supports today (coverage grid, figures, the model's outputs).
+BEHAVIOR_DIMS = (2,)
+
+
+def _bounds(task: Task, name: str, field: str) -> np.ndarray:
+    value = getattr(task, field)
+    try:
+        bounds = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        bounds = None
+    if bounds is None or bounds.ndim != 1 or bounds.size == 0:
+        raise ValueError(f"task {name!r}: {field}={value!r} is invalid: expected a non-empty tuple of numbers")
+    if not np.isfinite(bounds).all():
+        raise ValueError(f"task {name!r}: {field}={value!r} is invalid: every bound must be finite")
+    return bounds
+
+
+def check_task(task: Task, name: str) -> None:
+    """Raises ValueError, naming the task and the field, unless its definition is usable.
+
+    Checked when a task is made (`mqd_jax.registry`) or given to a `Config`, before
+    anything is traced or allocated: the action and behavior bounds are finite
+    tuples of equal lengths with low < high in every dimension, the behavior space
+    has a supported dimension (`BEHAVIOR_DIMS`), `quality_range` is a finite
+    (low, high) with low < high, and the paper settings are well-formed. The
+    outputs of `evaluate` are checked abstractly at the first run (`check_outputs`).
+    """
+    for kind in ("action", "behavior"):
+        low, high = _bounds(task, name, f"{kind}_low"), _bounds(task, name, f"{kind}_high")
+        if low.shape != high.shape:
+            raise ValueError(f"task {name!r}: {kind}_low has {low.size} dimensions and {kind}_high {high.size}: "
+                             "give both bounds of every dimension")
+        wrong = np.flatnonzero(~(low < high))
+        if wrong.size:
+            i = int(wrong[0])
+            raise ValueError(f"task {name!r}: the {kind} box is empty in dimension {i} ({kind}_low[{i}]="
+                             f"{low[i]} is not below {kind}_high[{i}]={high[i]}): give low < high in every dimension")
+    if task.behavior_dim not in BEHAVIOR_DIMS:
+        raise ValueError(f"task {name!r}: a behavior space of {task.behavior_dim} dimensions is not supported yet "
+                         f"(supported: {', '.join(map(str, BEHAVIOR_DIMS))})")
+    q = task.quality_range
+    ok = (isinstance(q, tuple) and len(q) == 2 and all(isinstance(v, (int, float)) and np.isfinite(v) for v in q)
+          and q[0] < q[1])
+    if not ok:
+        raise ValueError(f"task {name!r}: quality_range={q!r} is invalid: expected finite (low, high) with low < high")
+    if task.table_ii_column not in ("2d", "robot"):
+        raise ValueError(f"task {name!r}: table_ii_column={task.table_ii_column!r} is invalid: '2d' or 'robot'")
+    if not (isinstance(task.paper_seeds, int) and not isinstance(task.paper_seeds, bool) and task.paper_seeds >= 1):
+        raise ValueError(f"task {name!r}: paper_seeds={task.paper_seeds!r} is invalid: an int >= 1")

@@ -155,6 +155,7 @@ def registered():
     yield register
     for name in names:
         registry._FACTORIES.pop(name)
+        registry._SOURCES.pop(name)
     registry._make.cache_clear()
 
 

@@ -63,7 +63,7 @@ def test_a_file_as_out_and_damaged_results_name_the_file(tmp_path, capsys, refus
     refused(["run", *tiny_flags, "--out", str(tmp_path / "file")], "is a file, not a folder")
     (tmp_path / "obstacle2d_qd.json").write_text('{"config": {"task": "obst')
     (tmp_path / "obstacle2d_qd.npz").write_bytes(b"")
-    refused(["plot", str(tmp_path)], f"cannot read {str(tmp_path / 'obstacle2d_qd.json')!r}")
+    refused(["plot", str(tmp_path)], f"{str(tmp_path / 'obstacle2d_qd.json')!r} cannot be read (JSONDecodeError")
 
 
 def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
@@ -124,13 +124,20 @@ def test_a_task_from_an_installed_packages_entry_point(tmp_path, monkeypatch, en
 
 
 def test_the_compilation_cache_is_on_by_default_and_can_be_turned_off(tmp_path, monkeypatch):
-    assert cli.compilation_cache(False) is None
+    assert cli.compilation_cache(False) == (None, "no compilation cache (--no-cache)")
     monkeypatch.setenv(cli.CACHE_ENV, "off")
-    assert cli.compilation_cache(True) is None
+    assert cli.compilation_cache(True) == (None, f"no compilation cache ({cli.CACHE_ENV}=off)")
     # A fresh process without settings: the user's cache folder.
     env = {k: v for k, v in os.environ.items() if k not in (cli.CACHE_ENV, "JAX_COMPILATION_CACHE_DIR")}
     code = ("from mqd_jax import cli; import jax; "
-            "print(cli.compilation_cache(True), jax.config.jax_compilation_cache_dir)")
+            "print(cli.compilation_cache(True)[0], jax.config.jax_compilation_cache_dir)")
     out = subprocess.run([sys.executable, "-c", code], env={**env, "XDG_CACHE_HOME": str(tmp_path)},
                          capture_output=True, text=True, check=True).stdout.split()
     assert out == [str(tmp_path / "mqd-jax")] * 2
+    # What the progress line says matches what happens: a folder that cannot be written leaves the cache off.
+    (tmp_path / "a-file").write_text("")
+    code = ("from mqd_jax import cli; import jax; "
+            "print(cli.compilation_cache(True), jax.config.jax_compilation_cache_dir)")
+    out = subprocess.run([sys.executable, "-c", code], env={**env, cli.CACHE_ENV: str(tmp_path / "a-file" / "x")},
+                         capture_output=True, text=True, check=True).stdout
+    assert out.startswith("(None, 'no compilation cache: ") and "cannot be written" in out and out.endswith("None\n")

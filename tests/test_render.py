@@ -1,12 +1,11 @@
 """Watching skills: the frames of a robot skill, a 2D task's behavior path, and `mqd render`."""
 
-import json
 
 import numpy as np
 import pytest
 
 from envs import arena2d
-from mqd_jax import Config, cli, registry
+from mqd_jax import Config, cli, folders, registry
 
 
 def test_a_2d_action_cut_at_a_time_gives_the_position_at_that_time():
@@ -22,10 +21,10 @@ def test_a_2d_action_cut_at_a_time_gives_the_position_at_that_time():
 
 def _run_folder(tmp_path, behaviors):
     cfg = Config(task="obstacle2d", max_generations=2)
-    (tmp_path / "metrics.json").write_text(json.dumps({"config": cfg.to_dict()}))
+    folders.write_json(str(tmp_path / "metrics.json"), {"config": cfg.to_dict()})
     actions = np.tile(np.array([0, 1, 2, 0, 0, 0, 0, 0, 0], np.float32), (len(behaviors), 1))
     actions[:, 2] = np.arange(len(behaviors)) + 1.0
-    np.savez(tmp_path / "repertoire.npz", actions=actions, behaviors=np.asarray(behaviors, np.float32))
+    folders.write_npz(str(tmp_path / "repertoire.npz"), actions=actions, behaviors=np.asarray(behaviors, np.float32))
     return actions
 
 
@@ -40,7 +39,9 @@ def test_mqd_render_writes_the_skill_nearest_to_a_goal(tmp_path, capsys, refused
     with Image.open(out) as gif:
         assert gif.n_frames > 1 and gif.size == (80, 80)  # Pillow merges repeated frames (a still agent)
     refused(["render", str(tmp_path), "--index", "3"], "--index 3: the repertoire holds 3 skills (0 to 2)")
-    refused(["render", str(tmp_path / "missing")], "is not a folder of `mqd run`")
+    refused(["render", str(tmp_path / "missing")], "does not exist")
+    assert not (tmp_path / "missing").exists()
+    refused(["render", str(tmp_path), "--goal", "nan", "nan"], "--goal nan nan is invalid: expected finite numbers")
 
 
 def test_a_robot_skill_renders_the_arm_moving():

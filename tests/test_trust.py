@@ -35,7 +35,7 @@ def test_run_folder_refuses_another_config_and_keeps_the_first_run(tmp_path, cap
     err = refused(["run", *tiny_flags, "--generations", "2", "--algorithm", "random", "--out", out],
                   "it holds results of another run")
     assert "algorithm: saved 'mqd', now 'random'" in err and "max_generations: saved 3, now 2" in err
-    assert "usage: mqd run" in err  # the subcommand's usage, not the top-level one
+    assert err.startswith("mqd run: error:") and err.count("\n") == 1  # one line, not the usage text
     assert digest(tmp_path) == before
     refused(["run", *tiny_mqd_flags, "--algorithm", "mqd", "--seed", "1", "--out", out], "seed: saved 0, now 1")
     # The first run is still whole: it resumes (already complete: nothing to run).
@@ -69,8 +69,13 @@ def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny
 
 def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silently(tmp_path, capsys, refused,
                                                                                  tiny_flags):
+    old = '{"config": {}, "provenance": {"versions": {"mqd-jax": "0.8.0"}}}'  # an older mqd-jax's, no checksum
+    (tmp_path / "metrics.json").write_text(old)
+    refused(["run", *tiny_flags, "--out", str(tmp_path)], "results without a valid manifest (metrics.json")
+    assert (tmp_path / "metrics.json").read_text() == old
+    # A user's own file of the same name is not ours: refused, even with --overwrite, and kept.
     (tmp_path / "metrics.json").write_text("{}")
-    refused(["run", *tiny_flags, "--out", str(tmp_path)], "results without a manifest (metrics.json")
+    refused(["run", *tiny_flags, "--out", str(tmp_path), "--overwrite"], "metrics.json is not written by mqd-jax")
     assert (tmp_path / "metrics.json").read_text() == "{}"
 
 
@@ -101,10 +106,10 @@ def test_tables_refuse_a_folder_whose_batches_were_mixed_by_hand(tmp_path):
     # Not the paper's settings, so no paper values beside them, and the table says why.
     table = (tmp_path / "table1.md").read_text()
     assert "(paper" not in table and "shown only beside runs with Table II's settings" in table
-    path = tmp_path / "obstacle2d_random.json"
-    saved = json.loads(path.read_text())
+    path = str(tmp_path / "obstacle2d_random.json")
+    saved = folders.read_json(path, "")
     saved["config"]["t_dist"] = 0.03
-    path.write_text(json.dumps(saved))
+    folders.write_json(path, saved)  # a sound file of other runs, as another sweep would write it
     with pytest.raises(ValueError, match=r"mixes runs that cannot be compared.*t_dist: saved 0\.03, now 0\.02"):
         results.load_runs(str(tmp_path))
 
@@ -113,11 +118,12 @@ def test_batches_need_agree_only_on_the_model_fields_both_presets_read(tmp_path)
     """A QD batch sits beside M-QD batches of any model settings (QD reads none); two model presets must agree on
     the fields both read (hidden size), not on those one of them ignores (ensemble size, t_nov)."""
     sweep(tmp_path, "--algorithms", "qd", "--seeds", "2", "--warmup-samples", "8")
-    qd = json.loads((tmp_path / "obstacle2d_qd.json").read_text())
+    qd = folders.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
+    checkpoint.save(str(tmp_path / "obstacle2d_mqd.msgpack"), {}, {}, Config(), jax.random.PRNGKey(0))
 
     def add(algorithm, **changes):
         saved = {**qd, "config": {**qd["config"], "algorithm": algorithm, **changes}}
-        (tmp_path / f"obstacle2d_{algorithm}.json").write_text(json.dumps(saved))
+        folders.write_json(str(tmp_path / f"obstacle2d_{algorithm}.json"), saved)
         shutil.copy(tmp_path / "obstacle2d_qd.npz", tmp_path / f"obstacle2d_{algorithm}.npz")
 
     add("mqd", ensemble_size=4, hidden_size=64, t_nov=0.5)
