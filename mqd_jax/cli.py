@@ -264,6 +264,8 @@ def _sweep(args: argparse.Namespace) -> None:
                              "batches again with this implementation, or write to another folder")
         _say_removed(results.remove_batches(list(differ)), "--overwrite")
         _say_removed(results.remove_batches(list(stale)), "stale (another implementation)")
+        if clash:  # the tables and figures describe removed runs
+            results.remove_derived(args.out)
         planned = {results.stem(args.out, cfg) for cfg, _ in batches}
         for stem, e in results.scan(args.out)[1].items():
             if stem in planned:
@@ -357,8 +359,10 @@ def _render(args: argparse.Namespace) -> None:
     if not os.path.isdir(args.dir):
         raise ValueError(f"{args.dir!r} does not exist: give the folder a `mqd run` wrote")
     files = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
-    if not all(os.path.exists(f) for f in files):
-        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (metrics.json, repertoire.npz)")
+    missing = [f for f in files if not os.path.exists(f)]
+    if missing:
+        raise ValueError(f"{missing[0]!r} is missing: {args.dir!r} is not a whole folder of `mqd run` (metrics.json, "
+                         "repertoire.npz)")
     repair = f"the `mqd run` that made it, with --resume --out {args.dir}, writes it again from its checkpoint"
     saved = folders.read_json(files[0], repair)
     arrays = folders.read_npz(files[1], repair)

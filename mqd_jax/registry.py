@@ -32,6 +32,8 @@ import importlib.metadata
 from collections.abc import Callable
 from typing import Any
 
+import jax
+
 from mqd_jax.task import Task, check_task
 from mqd_jax.version import __version__
 
@@ -39,6 +41,15 @@ ENTRY_POINT_GROUP = "mqd_jax.tasks"
 BUILT_IN = "mqd-jax"  # the distribution whose entry points are the built-in tasks
 _FACTORIES: dict[str, Callable[..., Task]] = {}
 _SOURCES: dict[str, str] = {}  # how each name in _FACTORIES was registered
+# Called when a name changes implementation: a config names its task by name, so whatever was computed or
+# compiled for a config (jitted programs, the engine's per-config caches) may belong to the old one.
+_ON_REPLACE: list[Callable[[], None]] = [jax.clear_caches]
+
+
+def on_replace(clear: Callable[[], None]) -> None:
+    """Registers `clear`, called whenever a task name is given another implementation (a per-config cache's
+    `cache_clear`)."""
+    _ON_REPLACE.append(clear)
 # (name, options) of every task `make` built, by the task's id: how a config names its task in a results file.
 _MADE: dict[int, tuple[str, dict[str, Any]]] = {}
 
@@ -58,8 +69,12 @@ def register(name: str, factory: Callable[..., Task], replace: bool = False, _so
     if not replace and name in registered_tasks():
         raise ValueError(f"task {name!r} is already registered by {_sources(name)}; registering it again by {new} "
                          "would replace it: pass replace=True to do so on purpose, or choose another name")
+    replacing = name in registered_tasks()
     _FACTORIES[name], _SOURCES[name] = factory, new
     _make.cache_clear()
+    if replacing:
+        for clear in _ON_REPLACE:
+            clear()
 
 
 def _entry_source(entry: importlib.metadata.EntryPoint) -> str:
@@ -77,7 +92,8 @@ def _entry_points() -> dict[str, tuple[importlib.metadata.EntryPoint, ...]]:
     found: dict[str, dict[str, importlib.metadata.EntryPoint]] = {}
     for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
         found.setdefault(entry.name, {}).setdefault(_entry_source(entry), entry)
-    return {name: tuple(by_source.values()) for name, by_source in found.items()}
+    built_in_first = lambda e: not _entry_source(e).startswith("built-in")  # noqa: E731
+    return {name: tuple(sorted(by_source.values(), key=built_in_first)) for name, by_source in found.items()}
 
 
 def _sources(name: str) -> str:

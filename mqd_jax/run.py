@@ -111,6 +111,10 @@ def _state_shapes(cfg: Config) -> State:
     return jax.eval_shape(lambda k: init(k, cfg), jax.ShapeDtypeStruct((2,), jnp.uint32))
 
 
+registry.on_replace(_reachable.cache_clear)
+registry.on_replace(_state_shapes.cache_clear)
+
+
 def check_state(state: State, cfg: Config, batch: tuple[int, ...] = (), fields: tuple[str, ...] | None = None) -> None:
     """Raises ValueError unless every array of `state` has the shape and dtype a state of `cfg` has.
 
