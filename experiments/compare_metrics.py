@@ -12,13 +12,14 @@ differs.
 
 from __future__ import annotations
 
-import glob
 import hashlib
 import json
 import os
 import sys
 
 import numpy as np
+
+from mqd_jax import results
 
 
 def _digest(values: list) -> str:
@@ -32,12 +33,11 @@ def digests(source: str) -> dict[str, dict[str, str]]:
     if os.path.isfile(source):
         with open(source) as f:
             return json.load(f)
-    found = {}
-    for path in sorted(glob.glob(os.path.join(source, "*_*.json"))):
-        with open(path) as f:
-            metrics = json.load(f)["metrics"]
-        found[os.path.basename(path)] = {m: _digest(v) for m, v in metrics.items()}
-    return found
+    batches, damaged = results.scan(source)  # every file's checksum verified
+    if damaged:
+        raise SystemExit(str(next(iter(damaged.values()))))
+    return {os.path.basename(stem) + ".json": {m: _digest(v) for m, v in saved["metrics"].items()}
+            for stem, saved in batches}
 
 
 def compare(before: str, after: str) -> bool:

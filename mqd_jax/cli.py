@@ -226,7 +226,7 @@ def _run(args: argparse.Namespace) -> None:
             fresh = _command(args, drop=("--resume",), add=("--overwrite",))
             raise ValueError(f"{e}; the run cannot continue from it: `{fresh}` starts it afresh") from e
         meta = {"config": cfg.to_dict(), "seed": args.seed, "key": np.asarray(key).tolist(),
-                "provenance": provenance()}
+                "implementation": results.implementation(cfg), "provenance": provenance()}
         folders.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
         n = int(state.repertoire.count)
         rep = jax.device_get(state.repertoire)

@@ -15,7 +15,8 @@ import jax
 import numpy as np
 import pytest
 
-from mqd_jax import Config, adapt, checkpoint, cli, diagnostics, folders, results, run_mqd
+import mqd_jax
+from mqd_jax import Config, adapt, checkpoint, cli, diagnostics, folders, registry, results, run_mqd
 from mqd_jax.config import check_params
 from mqd_jax.sweep import run_batch, seed_keys
 
@@ -56,6 +57,7 @@ def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny
     assert saved["config"] == cfg and saved["seed"] == 7
     assert saved["key"] == np.asarray(jax.random.PRNGKey(7)).tolist()
     assert saved["provenance"]["versions"]["jax"] == jax.__version__
+    assert saved["implementation"] == {"mqd_jax": mqd_jax.__version__, "task": registry.source("obstacle2d")}
     assert saved["provenance"]["git"]  # this checkout's commit
     meta = json.loads(str(np.load(tmp_path / "repertoire.npz")["meta"]))
     assert meta["config"] == cfg and meta["seed"] == 7 and meta["provenance"] == saved["provenance"]
