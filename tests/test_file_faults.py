@@ -141,20 +141,23 @@ def test_damaged_adaptation_results_are_left_out_of_the_tables_with_a_line_that_
     assert sha(folder / "adaptation.json.damaged") == before
 
 
-@pytest.mark.parametrize("fault", [flip, foreign], ids=lambda f: f.__name__)
-def test_the_sweep_runs_a_damaged_batch_again_and_keeps_the_damaged_file(made, tmp_path, capsys, fault):
+@pytest.mark.parametrize(("name", "fault"), [("obstacle2d_qd.json", flip), ("obstacle2d_qd.json", foreign),
+                                           ("obstacle2d_qd.npz", truncate)], ids=["json-flip", "json-foreign",
+                                                                                  "npz-truncate"])
+def test_the_sweep_runs_a_damaged_batch_again_and_keeps_the_damaged_file(made, tmp_path, capsys, name, fault):
     folder = tmp_path / "sweep"
     shutil.copytree(made / "sweep", folder)
-    path = folder / "obstacle2d_qd.json"
+    path = folder / name
     intact = results.load_runs(str(folder))["obstacle2d"]["qd"]
     fault(path)
     damaged = path.read_bytes()
     cli.main([*SWEEP, "--out", str(folder)])
     out = capsys.readouterr().out
     assert f"{str(path)!r}" in out and "its batch is run again" in out and "obstacle2d mqd, 2 seeds: already in" in out
-    assert (folder / "obstacle2d_qd.json.damaged").read_bytes() == damaged
+    assert (folder / (name + ".damaged")).read_bytes() == damaged
     again = results.load_runs(str(folder))["obstacle2d"]["qd"]
     np.testing.assert_array_equal(again.metrics["coverage"], intact.metrics["coverage"])  # the same runs
+    np.testing.assert_array_equal(again.behaviors, intact.behaviors)
 
 
 def test_a_one_character_edit_of_a_result_is_refused_by_the_tables(made, tmp_path, refused):
