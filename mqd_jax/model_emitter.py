@@ -268,17 +268,22 @@ class ModelEmitter(Emitter):
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
         pool_size = self.acquisition.pool_size(num)
-        pool = self.inner.propose(key, state.inner, repertoire, task, params, pool_size)
+        with jax.named_scope("inner"):
+            pool = self.inner.propose(key, state.inner, repertoire, task, params, pool_size)
         warm_up = state.evaluations < self.warmup_samples
         if self.steering is not None:
-            pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
-                                          warm_up)
-        plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
-        judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
-        rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params, num)
-        from_model = jnp.ones(num, bool)
-        if self.fallback is not None:
-            rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
+            with jax.named_scope("steer"):
+                pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
+                                              warm_up)
+        with jax.named_scope("predict"):
+            plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
+            judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
+        with jax.named_scope("acquire"):
+            rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params,
+                                                               num)
+            from_model = jnp.ones(num, bool)
+            if self.fallback is not None:
+                rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
         keep = lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x  # noqa: E731
         # The kept rows' predicted distances (the opener AUC's score) searched for them alone, as judged.distance
         # would give them: a rule that reads no distances (Budgeted) then does not pay for a search of the pool.
@@ -329,10 +334,11 @@ class ModelEmitter(Emitter):
                                                evaluated.qualities, evaluated.usable)
         has_data = repertoire.count > 0 if self.training_data == "repertoire" else rollouts.total > 0
         due = (evaluations >= self.warmup_samples) & has_data
-        trained, loss = jax.lax.cond(
-            due, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
-                                     self.num_batches),
-            lambda: (state.model, jnp.float32(jnp.nan)))
+        with jax.named_scope("train"):
+            trained, loss = jax.lax.cond(
+                due, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
+                                         self.num_batches),
+                lambda: (state.model, jnp.float32(jnp.nan)))
         inner_proposal = Proposal(proposal.actions, proposal.rollout, proposal.info["inner"])
         inner, inner_metrics = self.inner.update(jax.random.fold_in(key, 1), state.inner, inner_proposal, evaluated,
                                                  repertoire, task, params)

@@ -1,11 +1,13 @@
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, registry, run_mqd
+from mqd_jax import Config, init, registry, run_mqd
+from mqd_jax.run import generation
 
 
 @pytest.mark.parametrize("task", ["obstacle2d", "object2d"])
@@ -76,3 +78,12 @@ def test_default_params_give_the_same_run_as_the_same_params_passed_in():
     key = jax.random.PRNGKey(0)
     for a, b in zip(jax.tree.leaves(run_mqd(key, cfg)), jax.tree.leaves(run_mqd(key, cfg, cfg.params())), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_generation_reads_as_named_stages(tiny):
+    cfg = tiny(algorithm="mqd", warmup_samples=16, num_batches=2)
+    state = init(jax.random.PRNGKey(0), cfg)
+    text = jax.jit(generation, static_argnums=1).lower(state, cfg, cfg.params()).as_text(debug_info=True)
+    for name in ("emit/inner", "emit/steer", "emit/predict", "emit/acquire", "evaluate", "insert", "archive",
+                 "coverage", "update/train", "metrics"):
+        assert re.search(rf'["/]{name}/', text), name  # an operation's location: .../emit/predict/...

@@ -1,0 +1,66 @@
+"""Saved runs that a refactor must repeat bit for bit: every preset on 2D Obstacle and PushCube.
+
+    python tests/reference_runs.py     # writes tests/data/reference_runs.npz (with the tests' XLA flags)
+
+`test_reference_runs.py` runs the same configs and compares every array of the final state and every metric
+with the saved ones. Written from the code of mqd-jax 0.9.0 (its git revision and the CPU model are saved
+beside the arrays): a change that alters a run's numbers shows here first.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import platform
+
+# The tests' XLA flags (conftest.py): the saved arrays are what the tests compute.
+os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false")
+
+import jax
+import numpy as np
+
+from mqd_jax import Config, registry, run_mqd
+from mqd_jax.provenance import provenance
+
+PATH = pathlib.Path(__file__).resolve().parent / "data" / "reference_runs.npz"
+ALGORITHMS = ("qd", "random", "mqd", "mqd-paper")
+TASKS = ("obstacle2d", "push_cube")
+
+
+def config(task: str, algorithm: str) -> Config:
+    """A tiny run: 3 generations of 8 candidates; M-QD's model filters from the second generation."""
+    made = registry.make(task, backend="mujoco") if task == "push_cube" else task
+    model = dict(warmup_samples=8, num_batches=2, t_nov=0.0, t_qua=0.0) if algorithm.startswith("mqd") else {}
+    return Config(task=made, algorithm=algorithm, max_generations=3, population_size=8, capacity=64,
+                  archive_capacity=32, **model)
+
+
+def cpu_model() -> str:
+    """The CPU's model name (floats of M-QD's model may round otherwise on another one)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
+def arrays(task: str, algorithm: str) -> dict[str, np.ndarray]:
+    """{name: array}: every leaf of the final state (by its path) and every metric of a run of `config`."""
+    state, metrics = run_mqd(jax.random.PRNGKey(0), config(task, algorithm))
+    leaves = jax.tree_util.tree_flatten_with_path(jax.device_get(state))[0]
+    found = {f"state{jax.tree_util.keystr(path)}": np.asarray(x) for path, x in leaves}
+    return {**found, **{f"metrics.{k}": np.asarray(v) for k, v in metrics.items()}}
+
+
+def main() -> None:
+    saved = {f"{task}/{algorithm}/{name}": x for task in TASKS for algorithm in ALGORITHMS
+             for name, x in arrays(task, algorithm).items()}
+    about = {"cpu": cpu_model(), "provenance": provenance()}
+    PATH.parent.mkdir(exist_ok=True)
+    np.savez_compressed(PATH, about=np.asarray(json.dumps(about)), **saved)
+    print(f"wrote {PATH}: {len(saved)} arrays, {PATH.stat().st_size} bytes")
+
+
+if __name__ == "__main__":
+    main()

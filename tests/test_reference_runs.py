@@ -1,0 +1,33 @@
+"""Every preset repeats, bit for bit, the runs saved from mqd-jax 0.9.0 (`reference_runs.py`).
+
+Every array of the final state and every metric must be equal. M-QD's trained floats may round otherwise on
+another CPU model (and its choices follow them), so M-QD's runs are compared on the CPU model the arrays were
+saved on (this project's machines) and skipped, saying so, on another; QD's and RANDOM's everywhere.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import reference_runs
+
+
+@pytest.fixture(scope="module")
+def saved():
+    with np.load(reference_runs.PATH) as f:
+        return {k: f[k] for k in f.files}
+
+
+@pytest.mark.parametrize("algorithm", reference_runs.ALGORITHMS)
+@pytest.mark.parametrize("task", reference_runs.TASKS)
+def test_a_run_repeats_the_saved_one_bit_for_bit(task, algorithm, saved):
+    cpu = json.loads(str(saved["about"]))["cpu"]
+    if algorithm.startswith("mqd") and cpu != reference_runs.cpu_model():
+        pytest.skip(f"M-QD's saved runs were made on {cpu}, this is {reference_runs.cpu_model()}")
+    now = reference_runs.arrays(task, algorithm)
+    prefix = f"{task}/{algorithm}/"
+    before = {k[len(prefix):]: v for k, v in saved.items() if k.startswith(prefix)}
+    assert sorted(now) == sorted(before)
+    for name, x in now.items():
+        assert x.dtype == before[name].dtype and x.shape == before[name].shape, name
+        np.testing.assert_array_equal(x, before[name], err_msg=name)
