@@ -1,11 +1,13 @@
 """mqd-jax: Model-Based Quality-Diversity search in JAX."""
 
+from mqd_jax import presets
 from mqd_jax.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.adaptation import Adapted, adapt
-from mqd_jax.config import Config, Params
+from mqd_jax.config import Config
 from mqd_jax.emitters import Emitter, Evaluated, IsoLine, Proposal, Uniform
 from mqd_jax.imagination import Imagination
 from mqd_jax.model_emitter import Fallback, ModelEmitter
+from mqd_jax.params import Params
 from mqd_jax.repertoire import AddStatus
 from mqd_jax.run import Candidates, State, ask, generation, init, run_generations, run_mqd, tell
 from mqd_jax.steering import Steering
@@ -39,6 +41,7 @@ __all__ = [
            "ask",
            "generation",
            "init",
+           "presets",
            "run_generations",
            "run_mqd",
            "tell",

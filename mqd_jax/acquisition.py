@@ -31,7 +31,7 @@ cannot).
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Protocol
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -40,11 +40,9 @@ from flax import struct
 
 from mqd_jax import neighbours as neighbours_lib
 from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.checks import is_int, is_real
+from mqd_jax.checks import check_traced, is_int, is_real
+from mqd_jax.params import Params
 from mqd_jax.repertoire import Repertoire
-
-if TYPE_CHECKING:
-    from mqd_jax.config import Params
 
 # A candidate whose probability of a usable rollout is below this is judged likely unusable.
 PLAUSIBLE = 0.5
@@ -133,10 +131,33 @@ def ranking(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, wanted
     return jnp.lexsort((-improvement, -primary, ~plausible, ~novel, ~wanted)).astype(jnp.int32)
 
 
+@struct.dataclass
+class ThresholdParams:
+    """The paper's thresholds, traced: predicted novelty `t_nov` and predicted quality improvement `t_qua`."""
+
+    t_nov: jax.Array
+    t_qua: jax.Array
+
+
 @dataclasses.dataclass(frozen=True)
 class Threshold:
-    """The paper's filter (Algorithm 1): of `num` candidates, roll out those that pass `params.t_nov` or
-    `params.t_qua` (and are judged likely usable, with a validity classifier); all of them during warm-up."""
+    """The paper's filter (Algorithm 1): of `num` candidates, roll out those whose predicted novelty exceeds
+    `t_nov` or whose predicted improvement exceeds `t_qua` (and are judged likely usable, with a validity
+    classifier); all of them during warm-up. `t_nov` (>= 0) and `t_qua` (any finite) are the defaults of its
+    traced parameters (`ThresholdParams`; Table II: 0.04 and 0)."""
+
+    t_nov: float = 0.04
+    t_qua: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check_thresholds(self, ("t_nov", "t_qua"))
+
+    def default_params(self) -> ThresholdParams:
+        return ThresholdParams(jnp.float32(self.t_nov), jnp.float32(self.t_qua))
+
+    def check_params(self, params: ThresholdParams) -> None:
+        check_traced("Threshold.params", "t_nov", params.t_nov)
+        check_traced("Threshold.params", "t_qua", params.t_qua, lowest=-np.inf)
 
     def pool_size(self, num: int) -> int:
         return num
@@ -144,20 +165,45 @@ class Threshold:
     def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept, their rollout mask [num] and how many wanted candidates were turned down."""
-        rollout = wanted & (warm_up | (passes(judged.novelty, judged.improvement, params.t_nov, params.t_qua)
+        own = params.emitter
+        rollout = wanted & (warm_up | (passes(judged.novelty, judged.improvement, own.t_nov, own.t_qua)
                                        & judged.plausible))
         return jnp.arange(num), rollout, (wanted & ~rollout).sum(dtype=jnp.int32)
 
 
+def _check_thresholds(rule: object, names: tuple[str, ...]) -> None:
+    for name in names:
+        value = getattr(rule, name)
+        lowest = -np.inf if name == "t_qua" else 0.0
+        if not (is_real(value) and value >= lowest):
+            expected = "a finite float" if name == "t_qua" else "a finite float >= 0"
+            raise ValueError(f"{type(rule).__name__}.{name}={value!r} is invalid: expected {expected}")
+
+
+@struct.dataclass
+class BudgetedParams:
+    """Budgeted's traced parameter: the predicted novelty `t_nov` above which a candidate ranks as novel."""
+
+    t_nov: jax.Array
+
+
 @dataclasses.dataclass(frozen=True)
 class Budgeted:
-    """Budgeted ranking: rank `pool_factor` x num candidates (`ranking`) and roll out the top num; during
-    warm-up the pool's first num candidates."""
+    """Budgeted ranking: rank `pool_factor` x num candidates (`ranking`, novel above the traced `t_nov`, its
+    default the field `t_nov`) and roll out the top num; during warm-up the pool's first num candidates."""
 
     pool_factor: int = 4
+    t_nov: float = 0.04
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
+        _check_thresholds(self, ("t_nov",))
+
+    def default_params(self) -> BudgetedParams:
+        return BudgetedParams(jnp.float32(self.t_nov))
+
+    def check_params(self, params: BudgetedParams) -> None:
+        check_traced("Budgeted.params", "t_nov", params.t_nov)
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
@@ -166,7 +212,7 @@ class Budgeted:
                num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (best first), their rollout mask [num] and how many candidates were turned
         down."""
-        top = ranking(judged.novelty, judged.improvement, params.t_nov, wanted, judged.plausible)[:num]
+        top = ranking(judged.novelty, judged.improvement, params.emitter.t_nov, wanted, judged.plausible)[:num]
         return _after_warm_up(top, wanted, warm_up, num)
 
 
@@ -308,7 +354,11 @@ class Diverse:
 
 
 class Acquisition(Protocol):
-    """What `ModelEmitter` needs of a rule (`Threshold`, `Budgeted` and `Diverse`; a user's own is another)."""
+    """What `ModelEmitter` needs of a rule (`Threshold`, `Budgeted` and `Diverse`; a user's own is another).
+
+    A rule with traced parameters also has `default_params()` and `check_params(params)` (as an `Emitter`
+    has) and reads them as `params.emitter` in `select`; one without needs neither (`params_of`).
+    """
 
     def pool_size(self, num: int) -> int:
         """How many candidates the rule chooses `num` from."""
@@ -318,3 +368,16 @@ class Acquisition(Protocol):
         """From the model's view of the pool (N candidates), the repertoire and the inner emitter's rollout mask
         `wanted` [N]: the rows [num] kept (a ranking rule: best first), their rollout mask [num] and the int32
         count of candidates the model turned down."""
+
+
+def params_of(rule: Any) -> Any:
+    """A rule's traced parameters: its `default_params()`, or () for a rule without."""
+    default = getattr(rule, "default_params", None)
+    return () if default is None else default()
+
+
+def check_params_of(rule: Any, params: Any) -> None:
+    """A rule's `check_params(params)`, where it has one."""
+    check = getattr(rule, "check_params", None)
+    if check is not None:
+        check(params)

@@ -5,7 +5,8 @@ For a goal b*, start from the repertoire skill nearest to it in behavior space,
 
     a_{j+1} = clip(a_j + lambda * pinv(J(a_j)) (b* - b_j)),   b_{j+1} = rollout(a_{j+1}),
 
-until ||b* - b_j|| < t_dist or `adaptation_steps` steps were made. Methods:
+until ||b* - b_j|| < t_dist or `steps` steps were made (Table II: lambda = `step_size` = 0.1, 10 steps).
+Methods:
 
 * "nearest": no step; the nearest skill itself.
 * "linear" (the paper's baseline): J = B pinv(G), with G [n, K] the K nearest
@@ -33,13 +34,16 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mqd_jax import model, neighbours, presets
-from mqd_jax.config import Config, Params, check_params
+from mqd_jax import model, neighbours
+from mqd_jax.checks import check_traced, is_int
+from mqd_jax.config import Config
 from mqd_jax.model_emitter import ModelEmitter
 from mqd_jax.run import State, check_state, get_task
 from mqd_jax.task import Task
 
 METHODS = ("nearest", "linear", "model")
+# Table II: the step size lambda and the number of adaptation steps.
+STEP_SIZE, STEPS = 0.1, 10
 
 
 @struct.dataclass
@@ -81,12 +85,13 @@ def _linear_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
 
 def _model_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
     """J [G, d, n] of the model's behavior prediction (real units) at each a_j."""
-    behavior = lambda a: presets.emitter(cfg).predict(state.emitter, a, task)[0]  # noqa: E731
+    behavior = lambda a: cfg.emitter.predict(state.emitter, a, task)[0]  # noqa: E731
     return lambda a, b: jax.vmap(jax.jacfwd(behavior))(a)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "method"))
-def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str, params: Params) -> Adapted:
+@functools.partial(jax.jit, static_argnames=("cfg", "method", "steps"))
+def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str, step_size: jax.Array,
+           steps: int, t_dist: jax.Array) -> Adapted:
     task = get_task(cfg)
     rep = state.repertoire
     nearest = jnp.argmin(jnp.where(rep.valid[None], neighbours.sq_dists(goals, rep.behaviors), jnp.inf), axis=1)
@@ -99,27 +104,32 @@ def _adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: 
     low, high = jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
 
     def step(j: jax.Array, carry: tuple) -> tuple:
-        a, b, (best_a, best_b, best_error), steps, active = carry
-        active = active & (error(b) >= params.t_dist)
+        a, b, (best_a, best_b, best_error), made, active = carry
+        active = active & (error(b) >= t_dist)
         direction = jnp.einsum("gnd,gd->gn", jnp.linalg.pinv(jacobian(a, b)), goals - b)
-        new_a = jnp.clip(a + params.adaptation_step_size * direction, low, high)
+        new_a = jnp.clip(a + step_size * direction, low, high)
         new_b, _, valid = task.evaluate_masked(new_a, jax.random.fold_in(key, j), active)
         ok = active & valid & jnp.isfinite(new_b).all(axis=1)
         a, b = jnp.where(ok[:, None], new_a, a), jnp.where(ok[:, None], new_b, b)
         better = ok & (error(b) < best_error)
         best = (jnp.where(better[:, None], a, best_a), jnp.where(better[:, None], b, best_b),
                 jnp.where(better, error(b), best_error))
-        return a, b, best, steps + active, ok
+        return a, b, best, made + active, ok
 
     init = (a0, b0, (a0, b0, error(b0)), zeros, jnp.ones(goals.shape[0], bool))
-    _, _, best, steps, _ = jax.lax.fori_loop(0, cfg.adaptation_steps, step, init)
-    return Adapted(*best, steps=steps, evaluations=steps)
+    _, _, best, made, _ = jax.lax.fori_loop(0, steps, step, init)
+    return Adapted(*best, steps=made, evaluations=made)
 
 
-def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task) -> None:
+def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task, step_size: float | jax.Array,
+           steps: int, t_dist: float | jax.Array) -> None:
     if method not in METHODS:
         raise ValueError(f"method={method!r} is invalid: expected one of {METHODS}")
-    if method == "model" and not isinstance(presets.emitter(cfg), ModelEmitter):
+    if not (is_int(steps) and steps >= 0):
+        raise ValueError(f"steps={steps!r} is invalid: expected an int >= 0")
+    check_traced("adapt", "step_size", step_size, inclusive=False)
+    check_traced("adapt", "t_dist", t_dist, inclusive=False)
+    if method == "model" and not isinstance(cfg.emitter, ModelEmitter):
         raise ValueError(f"method 'model' needs a run whose emitter is a ModelEmitter (M-QD), not "
                          f"{cfg.algorithm!r}: a QD or RANDOM run has no model")
     # Only what adaptation reads: t_dist may differ from the run's, and with it the coverage grid's stamp.
@@ -137,7 +147,8 @@ def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task)
 
 
 def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: str,
-          params: Params | None = None) -> Adapted:
+          step_size: float | jax.Array = STEP_SIZE, steps: int = STEPS, t_dist: float | jax.Array | None = None
+          ) -> Adapted:
     """Adapts the repertoire of `state` toward each goal behavior goals[G, d], in one jitted call.
 
     Args:
@@ -146,26 +157,28 @@ def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: s
         has trained.
       goals: [G, d] desired behaviors (anywhere; outside the behavior box too).
       key: PRNG key for the rollouts.
-      cfg: the run's config (t_dist, adaptation_step_size, adaptation_steps, k).
+      cfg: the run's config (its task, k and emitter).
       method: "nearest", "linear" or "model".
-      params: traced `Params` (t_dist, adaptation_step_size); default `cfg.params()`.
+      step_size: lambda, the step along pinv(J) (b* - b) (> 0; may be traced).
+      steps: the most adaptation steps (rollouts) per goal (static).
+      t_dist: a goal is reached within this distance (> 0; may be traced); default the run's `cfg.t_dist`.
 
     Raises ValueError for an unknown method, goals not shaped (G, d), an empty
     repertoire, an untrained model ("model"), a state of another config, and
-    invalid concrete params.
+    invalid concrete step_size, steps or t_dist.
     """
     task = get_task(cfg)
     goals = jnp.asarray(goals, jnp.float32)
-    _check(state, goals, cfg, method, task)
-    if params is not None:
-        check_params(params, cfg)
+    t_dist = cfg.t_dist if t_dist is None else t_dist
+    _check(state, goals, cfg, method, task, step_size, steps, t_dist)
     if goals.ndim != 2:
         raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task "
                          f"{cfg.task_name!r}")
-    return _adapt(state, goals, key, cfg, method, cfg.params() if params is None else params)
+    return _adapt(state, goals, key, cfg, method, jnp.float32(step_size), steps, jnp.float32(t_dist))
 
 
-def adapt_batch(states: State, goals: jax.Array, keys: jax.Array, cfg: Config, method: str) -> Adapted:
+def adapt_batch(states: State, goals: jax.Array, keys: jax.Array, cfg: Config, method: str,
+                step_size: float = STEP_SIZE, steps: int = STEPS) -> Adapted:
     """`adapt` for S runs' states at once (a sweep's, every array with a leading [S] axis), vmapped.
 
     goals: [S, G, d], one set per state; keys: [S, 2]. Returns `Adapted` with
@@ -174,12 +187,13 @@ def adapt_batch(states: State, goals: jax.Array, keys: jax.Array, cfg: Config, m
     """
     task = get_task(cfg)
     goals = jnp.asarray(goals, jnp.float32)
-    _check(states, goals, cfg, method, task)
+    _check(states, goals, cfg, method, task, step_size, steps, cfg.t_dist)
     runs = np.shape(states.repertoire.count)
     if goals.ndim != 3 or goals.shape[:1] != runs or np.shape(keys) != (*runs, 2):
         raise ValueError(f"adapt_batch: goals {goals.shape} and keys {np.shape(keys)} must be (S, G, "
                          f"{task.behavior_dim}) and (S, 2) for states of S = {runs} runs")
-    return jax.vmap(lambda s, g, k: _adapt(s, g, k, cfg, method, cfg.params()))(states, goals, keys)
+    size, t_dist = jnp.float32(step_size), jnp.float32(cfg.t_dist)
+    return jax.vmap(lambda s, g, k: _adapt(s, g, k, cfg, method, size, steps, t_dist))(states, goals, keys)
 
 
 def reachable_goals(task: Task, num: int, rng: np.random.Generator) -> np.ndarray:

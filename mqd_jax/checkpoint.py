@@ -33,8 +33,9 @@ from flax import serialization
 
 from mqd_jax import diagnostics
 from mqd_jax.checks import is_int
-from mqd_jax.config import Config, Params, check_params, upgraded
+from mqd_jax.config import Config, check_params, upgraded
 from mqd_jax.folders import differences, write_atomically
+from mqd_jax.params import Params
 from mqd_jax.provenance import provenance
 from mqd_jax.run import State, check_state, get_task, init, run_generations
 
@@ -61,7 +62,7 @@ def _from_format_3(state: dict[str, Any], fresh: dict[str, Any], cfg: Config) ->
         opt_state["count"] = old["steps"]
         # The rate `train` last set, for a run with the config's own params.
         opt_state["hyperparams"]["learning_rate"] = np.full_like(opt_state["hyperparams"]["learning_rate"],
-                                                                 cfg.learning_rate)
+                                                                 cfg.emitter.learning_rate)
         model.update(params=old["params"], steps=old["steps"])
         emitter["evaluations"] = state["num_evaluations"]
     return {**state, "emitter": emitter}

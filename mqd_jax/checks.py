@@ -1,7 +1,8 @@
 """What a setting given as a Python number must be: the checks every part's constructor shares.
 
 A leaf module (it imports nothing of the package), so that `config` and the
-parts it builds (emitters, rules, steering, pursuit) use the same ones.
+parts it builds (emitters, rules, steering, pursuit) use the same ones, for
+static settings (`is_int`, `is_real`) and traced parameters (`check_traced`).
 """
 
 from __future__ import annotations
@@ -18,3 +19,28 @@ def is_int(value: Any) -> bool:
 def is_real(value: Any) -> bool:
     """A finite int or float, not a bool: NaN and +-inf are refused (no setting here means anything at them)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_traced(owner: str, name: str, value: Any, lowest: float = 0.0, inclusive: bool = True,
+                 highest: float | None = None) -> None:
+    """Raises ValueError naming `owner.name` unless every element of a concrete traced parameter is finite and
+    >= `lowest` (> `lowest` unless `inclusive`; -inf: any finite) and <= `highest` (if given).
+
+    Traced values (inside a user's `jit` or `vmap`) cannot be read and are not checked. Batched values (a sweep's
+    [R]) are checked element by element; the message gives the first bad one.
+    """
+    import jax
+    import numpy as np
+
+    if isinstance(value, jax.core.Tracer):
+        return
+    v = np.asarray(value, np.float64)
+    bad = ~np.isfinite(v) | ((v < lowest) if inclusive else (v <= lowest))
+    if highest is not None:
+        bad |= v > np.float32(highest)
+    if bad.any():
+        relation = ">=" if inclusive else ">"
+        allowed = "any finite float" if lowest == -math.inf else f"a finite float {relation} {lowest:g}"
+        if highest is not None:
+            allowed += f" and <= {highest}"
+        raise ValueError(f"{owner}.{name}={float(v.ravel()[np.argmax(bad.ravel())])!r} is invalid: expected {allowed}")

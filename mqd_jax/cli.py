@@ -17,6 +17,7 @@ start of the same config skips compilation.
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import json
 import math
@@ -26,12 +27,13 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import numpy as np
 
-from mqd_jax import adaptation, checkpoint, folders, plots, registry, results, sweep
-from mqd_jax.config import PRESETS, Config
+from mqd_jax import adaptation, checkpoint, folders, plots, presets, registry, results, sweep
+from mqd_jax.config import PRESETS, Config, upgraded
 from mqd_jax.provenance import provenance
 from mqd_jax.run import State, get_task
 
@@ -88,9 +90,31 @@ def _task_names() -> str:
     return ", ".join(registry.registered_tasks()) + ", or a plugin package.module:factory"
 
 
+def _option(text: str) -> tuple[str, Any]:
+    """argparse type: NAME=VALUE, the value as a Python literal (8, 0.5, True, 'parent'; a bare word is a str)."""
+    name, sep, value = text.partition("=")
+    if not (sep and name.strip()):
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid: expected NAME=VALUE (pool_factor=16)")
+    try:
+        parsed = ast.literal_eval(value.strip())
+    except (ValueError, SyntaxError):
+        parsed = value.strip()
+    return name.strip(), parsed
+
+
+def _presets_help() -> str:
+    """Each preset's options with their defaults (the epilog of `mqd run --help`)."""
+    lines = ["algorithm options (--algorithm-option NAME=VALUE; defaults: Table II's 2D column):"]
+    for name in PRESETS:
+        taken = presets.options(name)
+        lines.append(f"  {name}: " + (", ".join(f"{o}={d!r}" for o, d in taken.items()) or "none"))
+    return "\n".join(lines)
+
+
 def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (), preset: str = "paper-2d",
                       defaults: dict | None = None) -> None:
-    """One flag per Config field (`--t-nov 0.05`, `--budgeted/--no-budgeted`); unset flags keep the preset's value.
+    """One flag per Config field (`--t-dist 0.03`, `--population 50`) and `--algorithm-option NAME=VALUE`; unset
+    flags keep the preset's value.
 
     The help of each flag shows the value it takes when not given (the preset's, after `defaults`).
     """
@@ -100,29 +124,34 @@ def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (
                              (", auto: paper-robot for the robot tasks, else paper-2d" if preset == "auto" else "") +
                              " (default: %(default)s)")
     base = COLUMNS[preset](**(defaults or {})) if preset in COLUMNS else None
-    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(PRESETS)}",
-                "budgeted": "M-QD: roll out the pool_factor x population candidates the model ranks best "
-                            "(instead of the paper's threshold filter)"}
+    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(PRESETS)}"}
     for field in dataclasses.fields(Config):
-        if field.name in skip:
+        if field.name in skip or field.name == "algorithm_options":
             continue
         flags = ["--" + field.name.replace("_", "-"), *_ALIASES.get(field.name, [])]
         default = "the preset's for the task" if base is None else repr(getattr(base, field.name))
         text = f"{specific.get(field.name, 'Config.' + field.name)} (default: {default})"
-        if isinstance(field.default, bool):
-            parser.add_argument(*flags, dest=field.name, action=argparse.BooleanOptionalAction, default=None,
-                                help=text)
-        else:
-            parser.add_argument(*flags, dest=field.name, type=type(field.default), default=None, help=text)
+        parser.add_argument(*flags, dest=field.name, type=type(field.default), default=None, help=text)
+    parser.add_argument("--algorithm-option", "-O", dest="algorithm_options", type=_option, nargs="+",
+                        action="extend", default=[], metavar="NAME=VALUE",
+                        help="an option of the algorithm (repeatable): see the list below; Table II's column sets "
+                             "the model's (hidden_size 64 with paper-robot)")
 
 
 def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str) -> Config:
-    """The config the flags give: preset (auto: paper-robot for the robot tasks), then `defaults`, flags, `fixed`."""
+    """The config the flags give: preset (auto: paper-robot for the robot tasks), then `defaults`, flags, `fixed`.
+
+    In a sweep (several algorithms), each algorithm takes the options it has; an option none of them has is
+    refused (`_sweep`)."""
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(Config)
-             if getattr(args, f.name, None) is not None}
+             if f.name != "algorithm_options" and getattr(args, f.name, None) is not None}
     given.update(fixed)
+    options = dict(args.algorithm_options)
+    algorithm = given.get("algorithm", Config.algorithm)
+    if "algorithm" in fixed:  # a sweep's: only the options this algorithm takes
+        options = {o: v for o, v in options.items() if o in presets.options(algorithm)}
     preset = Config.paper if args.preset == "auto" else COLUMNS[args.preset]
-    return preset(**{**(defaults or {}), **given})
+    return preset(**{**(defaults or {}), **given, "algorithm_options": options})
 
 
 def _positive(text: str) -> int:
@@ -182,6 +211,12 @@ def _command(args: argparse.Namespace, drop: tuple[str, ...] = (), add: tuple[st
     return "mqd " + shlex.join([*(a for a in args.argv if a not in drop), *add])
 
 
+def _upgraded_identity(identity: dict[str, Any]) -> dict[str, Any]:
+    """A run folder's identity saved by an earlier version, its config in today's form."""
+    return {**identity, "config": upgraded(identity["config"])} if isinstance(identity.get("config"), dict) \
+        else identity
+
+
 def _run(args: argparse.Namespace) -> None:
     if not 0 <= args.seed < SEEDS:
         raise ValueError(f"--seed {args.seed} is invalid: expected an int from 0 to {SEEDS - 1} (PRNGKey(seed): "
@@ -199,8 +234,8 @@ def _run(args: argparse.Namespace) -> None:
         _say_removed(leftovers, "left by an interrupted writer")
         if args.resume and not os.path.exists(path):
             raise ValueError(f"--resume: {args.out!r} holds no checkpoint; run without --resume to start")
-        _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": args.seed},
-                                   RUN_FILES, args.overwrite), "--overwrite")
+        _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": args.seed}, RUN_FILES,
+                                   args.overwrite, upgrade=_upgraded_identity), "--overwrite")
         if os.path.exists(path) and not args.resume:
             if not args.overwrite:
                 raise ValueError(f"{args.out!r} holds a checkpoint of this run: `{_command(args, add=('--resume',))}`"
@@ -244,6 +279,11 @@ def _run(args: argparse.Namespace) -> None:
 
 
 def _sweep(args: argparse.Namespace) -> None:
+    taken = {o for a in args.algorithms for o in presets.options(a)}
+    untaken = [o for o, _ in args.algorithm_options if o not in taken]
+    if untaken:
+        raise ValueError(f"--algorithm-option {untaken[0]}: none of the algorithms {', '.join(args.algorithms)} "
+                         f"takes it (mqd run --help lists each one's options)")
     configs = [_config(args, task=t, algorithm=a) for t in args.tasks for a in args.algorithms]
     batches = [(cfg, np.asarray(sweep.seed_keys(args.seeds or get_task(cfg).paper_seeds))) for cfg in configs]
     where = ["before the first batch"]
@@ -317,14 +357,16 @@ def _adapt(args: argparse.Namespace) -> None:
             methods = {}
             for method in adaptation.METHODS:
                 start = time.perf_counter()
-                out = jax.device_get(adaptation.adapt_batch(states, goals, rollout_keys, cfg, method))
+                out = jax.device_get(adaptation.adapt_batch(states, goals, rollout_keys, cfg, method,
+                                                            args.step_size, args.steps))
                 methods[method] = {"error": out.errors.mean(1), "steps": out.steps.mean(1),
                                    "reached": (out.errors < cfg.t_dist).mean(1), "goals": args.goals,
                                    "wall_s": time.perf_counter() - start}
                 print(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps {out.steps.mean():.2f}, "
                       f"{methods[method]['wall_s']:.1f} s", flush=True)
             found[task] = {"source": results.source(args.dir, task), "config": cfg.to_dict(),
-                           "keys": keys, "provenance": provenance(), "methods": methods}
+                           "step_size": args.step_size, "steps": args.steps, "keys": keys,
+                           "provenance": provenance(), "methods": methods}
             results.remove_derived(args.dir)
             folders.write_json(path, found)
         _plot(args.dir)
@@ -409,7 +451,8 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
                         help="replace results of another config in the folder (otherwise refused); removes only "
                              "files mqd-jax wrote there")
 
-    run = sub.add_parser("run", parents=[cache, writes], help="run one search and write metrics, repertoire and a plot")
+    run = sub.add_parser("run", parents=[cache, writes], help="run one search and write metrics, repertoire and a plot",
+                         epilog=_presets_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_config_flags(run, defaults=_RUN_DEFAULTS)
     run.add_argument("--seed", type=int, default=0,
                      help=f"the run's key is PRNGKey(seed), 0 <= seed < {SEEDS} (default: %(default)s)")
@@ -420,7 +463,9 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     run.add_argument("--out", default="results/run", help="results folder (default: %(default)s)")
 
     sw = sub.add_parser("sweep", parents=[cache, writes],
-                        help="seed sweeps (vmapped, sharded over devices): metrics, Table I, Figure 2")
+                        help="seed sweeps (vmapped, sharded over devices): metrics, Table I, Figure 2",
+                        epilog=_presets_help() + "\n(each algorithm of a sweep takes the options it has)",
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_config_flags(sw, skip=_PER_TASK, preset="auto")
     sw.add_argument("--tasks", nargs="+", default=list(registry.registered_tasks()), metavar="TASK",
                     help=f"tasks to sweep: {_task_names()} (default: every registered task)")
@@ -442,6 +487,10 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     ad.add_argument("--tasks", nargs="+", default=None, help="default: every task with M-QD runs in DIR")
     ad.add_argument("--goals", type=_positive, default=1000,
                     help="goals per repertoire (default: the paper's %(default)s)")
+    ad.add_argument("--step-size", type=float, default=adaptation.STEP_SIZE,
+                    help="lambda, the step along the Jacobian's pseudo-inverse (default: Table II's %(default)s)")
+    ad.add_argument("--steps", type=int, default=adaptation.STEPS,
+                    help="the most steps (rollouts) per goal (default: Table II's %(default)s)")
 
     pl = sub.add_parser("plot", help="tables and figures of a results folder")
     pl.add_argument("dir")

@@ -1,84 +1,55 @@
-"""Static configuration (`Config`) and traced runtime parameters (`Params`).
+"""A run's static configuration (`Config`) and the check of its traced parameters (`check_params`).
 
-`Config` holds every hyperparameter of the paper's Table II plus the choices the
-paper leaves open. It is a frozen, hashable dataclass, so it can be a static
-argument of `jax.jit`; every field is validated at construction (and therefore
-also through `dataclasses.replace`), before anything is traced.
+`Config` holds what every run has: the task (a registered name, with its
+options, or a `Task`), the algorithm (a preset's name, with its
+`algorithm_options`, or any `Emitter`), the population, repertoire and archive
+sizes, the novelty's k, `t_dist`, the generations and the coverage grid. It is
+a frozen, hashable dataclass, so it can be a static argument of `jax.jit`;
+every field is validated at construction (and therefore also through
+`dataclasses.replace`), before anything is traced: a preset's options against
+its function's signature (`mqd_jax.presets`), the emitter against the run's
+size (`Emitter.check_run`).
 
-`Params` holds the scalar thresholds and rates as a pytree of arrays, so that one
-compiled run can be `jax.vmap`-ed over them (the way evosax separates `params`
-from the static config). `Config.params()` gives the defaults from the config.
-
-A config names its task (resolved through `mqd_jax.registry`) or holds a
-`Task` object, and names a preset emitter ("mqd", "mqd-paper", "qd",
-"random"; built by `mqd_jax.presets` from the config's fields) or holds any
-`Emitter`.
+The traced parameters (`mqd_jax.params.Params`, `Config.params()`) are the
+engine's `t_dist` and the emitter's own (`Emitter.default_params()`), so one
+compiled run can be `jax.vmap`-ed over them.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
+from collections.abc import Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
-from mqd_jax import registry
-from mqd_jax.checks import is_int, is_real
+from mqd_jax import presets, registry
+from mqd_jax.checks import check_traced, is_int, is_real
 from mqd_jax.emitters import Emitter
-from mqd_jax.model_emitter import ANCHORS
+from mqd_jax.params import Params
 from mqd_jax.task import Task, check_task
 
-# The named emitters `Config.algorithm` may give (built by `mqd_jax.presets`).
-PRESETS = ("mqd", "mqd-paper", "qd", "random")
-# The presets with a learned model.
-MODEL_PRESETS = ("mqd", "mqd-paper")
-
-
-@struct.dataclass
-class Params:
-    """Scalar hyperparameters that may be traced (all float32 scalars)."""
-
-    t_dist: jnp.ndarray
-    t_nov: jnp.ndarray
-    t_qua: jnp.ndarray
-    learning_rate: jnp.ndarray
-    iso_sigma: jnp.ndarray
-    line_sigma: jnp.ndarray
-    adaptation_step_size: jnp.ndarray
-
-
-# The allowed range of each traced parameter: (name, lowest, whether the lowest is allowed); t_qua: any finite.
-_PARAM_RANGES = (("t_dist", 0.0, False), ("learning_rate", 0.0, False), ("adaptation_step_size", 0.0, False),
-                 ("t_nov", 0.0, True), ("iso_sigma", 0.0, True), ("line_sigma", 0.0, True),
-                 ("t_qua", -math.inf, False))
+# The named emitters `Config.algorithm` may give (`mqd_jax.presets`), in the order tables show them.
+PRESETS = tuple(presets.PRESETS)
 
 
 def check_params(params: Params, cfg: Config) -> None:
-    """Raises ValueError naming the field if a concrete `Params` value is NaN, infinite or out of range.
+    """Raises ValueError naming the parameter if a concrete value of `params` is NaN, infinite or out of range.
 
-    Checks every element (batched Params too) with the same rules as `Config`, and
-    `t_dist <= cfg.t_dist` (the coverage grid stamps disks of at most the config's
-    radius). Traced values (inside a user's `jit` or `vmap`) cannot be read and are
-    not checked.
+    The engine's `t_dist` (> 0 and <= `cfg.t_dist`: the coverage grid stamps disks of at most the config's
+    radius) and the emitter's own, checked by the emitter (`Emitter.check_params`); every element of batched
+    params too. Traced values (inside a user's `jit` or `vmap`) cannot be read and are not checked.
     """
-    for name, lowest, inclusive in _PARAM_RANGES:
-        value = getattr(params, name)
-        if isinstance(value, jax.core.Tracer):
-            continue
-        v = np.asarray(value, np.float64)
-        bad = ~np.isfinite(v) | ((v < lowest) if inclusive else (v <= lowest))
-        if name == "t_dist":
-            bad |= v > np.float32(cfg.t_dist)
-        if bad.any():
-            allowed = "any finite float" if name == "t_qua" else f"a finite float {'>=' if inclusive else '>'} 0"
-            if name == "t_dist":
-                allowed += f" and <= Config.t_dist ({cfg.t_dist}; the coverage grid's largest disk)"
-            first = float(v.ravel()[np.argmax(bad.ravel())])
-            raise ValueError(f"Params.{name}={first!r} is invalid: expected {allowed}")
+    if not isinstance(params, Params):
+        raise ValueError(f"params must be a mqd_jax.Params (cfg.params()), not a {type(params).__name__}")
+    want = jax.tree.structure(cfg.params().emitter)
+    if jax.tree.structure(params.emitter) != want:
+        raise ValueError(f"params.emitter does not belong to {cfg.algorithm_name}: expected the structure of "
+                         f"cfg.params().emitter ({want})")
+    check_traced("Params", "t_dist", params.t_dist, inclusive=False, highest=cfg.t_dist)
+    cfg.emitter.check_params(params.emitter)
 
 
 def _check(ok: bool, name: str, value: Any, allowed: str) -> None:
@@ -86,78 +57,47 @@ def _check(ok: bool, name: str, value: Any, allowed: str) -> None:
         raise ValueError(f"Config.{name}={value!r} is invalid: expected {allowed}")
 
 
+def _options(given: Any) -> tuple[tuple[str, Any], ...]:
+    """Options as given (a mapping, or the pairs a config holds) as sorted pairs."""
+    if isinstance(given, Mapping):
+        given = given.items()
+    try:
+        pairs = tuple(sorted((str(k), v) for k, v in given))
+    except (TypeError, ValueError):
+        raise ValueError(f"Config.algorithm_options={given!r} is invalid: expected a dict of option: value") from None
+    return pairs
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """Every hyperparameter of a run. Defaults are Table II's 2D column.
+    """Every static setting of a run. Defaults are Table II's 2D column.
 
-    Shape-determining fields (population, capacity, K, hidden size, generations,
-    task, algorithm) are static. The scalar thresholds and rates are also copied
-    into `Params` by `params()`, which is what the jitted code reads, so they can
-    be overridden by traced values.
-
-    `task` is a registered task's name or a `Task`; `algorithm` a preset's name
-    (`PRESETS`) or an `Emitter` (any composition, see `mqd_jax.emitters`). The
-    model fields (batch_size, num_batches, warmup_samples, hidden_size,
-    pool_factor; "mqd": ensemble_size, optimism, steering_share, anchor, parent_weight, quality_share,
-    wide_scale; "mqd-paper": t_nov, t_qua, budgeted) configure the model presets; a composed emitter
-    carries its own settings.
+    Attributes:
+      task: a registered task's name (`mqd_jax.registry`) or a `Task`.
+      algorithm: a preset's name (`PRESETS`: "mqd", "mqd-paper", "qd", "random") or any `Emitter`.
+      algorithm_options: a preset's options (a dict, `mqd_jax.presets`: `presets.options(name)` lists them with
+        their defaults); held as the sorted pairs that differ from the defaults, so configs that mean the same
+        run compare, hash and save the same.
+      max_generations, population_size: the run's length and candidates per generation.
+      k: neighbours in the novelty score (and in M-QD's predicted novelty).
+      t_dist: insertion distance threshold and coverage disk radius (the default of `Params.t_dist`).
+      capacity, archive_capacity: repertoire and rejected-archive sizes (fixed-size masked arrays).
+      neighbour_slack: neighbour-list length kept per skill beyond k (longer lists are recomputed less often
+        when neighbours are replaced; changes no result).
+      coverage_resolution: cells per behavior-space axis of the coverage grid.
     """
 
     task: str | Task = "obstacle2d"
     algorithm: str | Emitter = "qd"
+    algorithm_options: Any = ()
     max_generations: int = 250
     population_size: int = 100
     k: int = 5
     t_dist: float = 0.02
-    t_nov: float = 0.04
-    t_qua: float = 0.0
-    learning_rate: float = 1e-3
-    batch_size: int = 16
-    num_batches: int = 500
-    warmup_samples: int = 1000
-    hidden_size: int = 32
-    adaptation_step_size: float = 0.1
-    adaptation_steps: int = 10
-    # Repertoire and rejected-archive sizes (fixed-size masked arrays).
     capacity: int = 4096
     archive_capacity: int = 4096
-    # Iso+line variation (Vassiliades & Mouret 2018): Gaussian mutation with
-    # std `iso_sigma` times the action range, plus a crossover step of std
-    # `line_sigma` along the line between the two parents.
-    iso_sigma: float = 0.02
-    line_sigma: float = 0.1
-    # Neighbour-list length kept per skill (>= k); longer lists are recomputed
-    # less often when neighbours are replaced. Does not change any result.
     neighbour_slack: int = 3
-    # Cells per behavior-space axis of the coverage grid.
     coverage_resolution: int = 256
-    # "mqd" (acquisition.Diverse) and budgeted "mqd-paper" choose the
-    # population from `pool_factor` x as many candidates.
-    pool_factor: int = 8
-    # "mqd": the model's ensemble members (one network: four were no better and
-    # twice as slow, docs/results.md), and the weight of their spread in the
-    # optimistic distance to the nearest skill (acquisition.greedy_diverse).
-    ensemble_size: int = 1
-    optimism: float = 1.0
-    # "mqd": the share of the pool replaced by children the model's Jacobian
-    # aims at empty behavior space (steering.Steering; 0 = none, version 0.4's "mqd").
-    steering_share: float = 0.25
-    # "mqd": where the model's predictions are anchored (ModelEmitter.anchor): "parent", the skill a
-    # candidate was varied from, or "nearest", the nearest skill in action space (a search; version 0.5's).
-    anchor: str = "parent"
-    # "mqd": the exponent of a predicted opener's parent's relative novelty in its rank (acquisition.Diverse's
-    # parent_weight; 0 = the predicted distance alone, version 0.6's "mqd").
-    parent_weight: float = 1.0
-    # "mqd": the share of the rule's choices that go first to predicted quality gains in held niches
-    # (acquisition.Diverse's quality_share; 0 = none, version 0.7's "mqd").
-    quality_share: float = 0.1
-    # "mqd": half of the pool's children vary at `wide_scale` x both iso+line steps
-    # (IsoLine(scales=(1, wide_scale))); 1 = one scale, version 0.8's "mqd".
-    wide_scale: float = 2.0
-    # Budgeted ranking ("mqd-paper" only; off is the paper's threshold filter):
-    # rank `pool_factor` x population candidates with the model and evaluate
-    # exactly `population_size` of them (see acquisition.Budgeted).
-    budgeted: bool = False
 
     def __post_init__(self) -> None:
         # numpy scalars (np.int64(10), np.float32(0.02)) become the Python values they hold, so that
@@ -173,51 +113,55 @@ class Config:
             check_task(self.task, type(self.task).__name__)
         _check(isinstance(self.algorithm, Emitter) or self.algorithm in PRESETS, "algorithm", self.algorithm,
                f"an Emitter or one of the presets {PRESETS}")
-        for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1),
-                         ("batch_size", 1), ("num_batches", 1), ("warmup_samples", 0),
-                         ("hidden_size", 1), ("adaptation_steps", 0), ("capacity", 1),
-                         ("archive_capacity", 1), ("neighbour_slack", 0),
-                         ("coverage_resolution", 8), ("pool_factor", 1), ("ensemble_size", 1)):
+        for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1), ("capacity", 1),
+                         ("archive_capacity", 1), ("neighbour_slack", 0), ("coverage_resolution", 8)):
             v = getattr(self, name)
             _check(is_int(v) and v >= lo, name, v, f"an int >= {lo}")
-        for name in ("t_dist", "learning_rate", "adaptation_step_size"):
-            v = getattr(self, name)
-            _check(is_real(v) and v > 0, name, v, "a finite float > 0")
-        for name in ("t_nov", "iso_sigma", "line_sigma", "optimism", "parent_weight"):
-            v = getattr(self, name)
-            _check(is_real(v) and v >= 0, name, v, "a finite float >= 0")
-        _check(is_real(self.t_qua), "t_qua", self.t_qua, "a finite float")
-        _check(isinstance(self.budgeted, bool), "budgeted", self.budgeted, "a bool")
-        _check(not self.budgeted or self.algorithm == "mqd-paper", "budgeted", self.budgeted,
-               f"False unless algorithm='mqd-paper' (it is {self.algorithm!r})")
-        _check(is_real(self.steering_share) and 0 <= self.steering_share < 1, "steering_share", self.steering_share,
-               "a float in [0, 1)")
-        _check(is_real(self.quality_share) and 0 <= self.quality_share <= 1, "quality_share", self.quality_share,
-               "a float in [0, 1]")
-        _check(is_real(self.wide_scale) and self.wide_scale > 0, "wide_scale", self.wide_scale, "a finite float > 0")
-        _check(self.anchor in ANCHORS, "anchor", self.anchor, f"one of {ANCHORS}")
-        pool = self.pool_factor * self.population_size
-        steered = round(self.steering_share * pool)
-        _check(self.algorithm != "mqd" or self.steering_share == 0 or 1 <= steered <= pool - self.population_size,
-               "steering_share", self.steering_share, f"0, or a share of 'mqd''s pool of {pool} (pool_factor x "
-               "population_size) that steers at least one child and leaves population_size unsteered")
-        budget = self.max_generations * self.population_size
-        _check(self.algorithm not in MODEL_PRESETS or self.warmup_samples < budget, "warmup_samples",
-               self.warmup_samples,
-               f"an int < max_generations * population_size ({budget}) for M-QD, or the model is never used")
+        _check(is_real(self.t_dist) and self.t_dist > 0, "t_dist", self.t_dist, "a finite float > 0")
         _check(self.population_size <= self.capacity, "population_size", self.population_size,
                f"an int <= capacity ({self.capacity})")
+        given = _options(self.algorithm_options)
+        if isinstance(self.algorithm, Emitter):
+            _check(not given, "algorithm_options", dict(given), "{} with an Emitter (it carries its own settings)")
+            emitter = self.algorithm
+        else:
+            defaults = presets.options(self.algorithm)
+            settings = presets.resolved(self.algorithm, dict(given))
+            given = tuple((o, v) for o, v in sorted(settings.items()) if v != defaults[o] or type(v) is not
+                          type(defaults[o]))
+            emitter = presets.build(self.algorithm, dict(given), self.k)
+        object.__setattr__(self, "algorithm_options", given)
+        emitter.check_run(self.population_size, self.max_generations)
+        object.__setattr__(self, "_emitter", emitter)
+
+    @property
+    def emitter(self) -> Emitter:
+        """The emitter a run of this config uses: the preset built with its options, or `algorithm` itself."""
+        return self._emitter
+
+    @property
+    def options(self) -> dict[str, Any]:
+        """Every option of the preset (its defaults with `algorithm_options` over them); {} for an Emitter."""
+        if isinstance(self.algorithm, Emitter):
+            return {}
+        return presets.resolved(self.algorithm, dict(self.algorithm_options))
 
     @classmethod
     def paper_2d(cls, **overrides: Any) -> Config:
         """Table II, 2D column (the 2D Obstacle task unless `task` is given)."""
-        return cls(**overrides)
+        return cls._column("2d", {}, overrides)
 
     @classmethod
     def paper_robot(cls, **overrides: Any) -> Config:
-        """Table II, robotic column: 100 generations, 64 hidden neurons."""
-        base = dict(max_generations=100, hidden_size=64)
-        return cls(**{**base, **overrides})
+        """Table II, robotic column: 100 generations, 64 hidden neurons (for the presets with a model)."""
+        return cls._column("robot", {"max_generations": 100}, overrides)
+
+    @classmethod
+    def _column(cls, column: str, base: dict[str, Any], overrides: dict[str, Any]) -> Config:
+        algorithm = overrides.get("algorithm", cls.algorithm)
+        table = presets.table_ii(algorithm, column) if isinstance(algorithm, str) and algorithm in PRESETS else {}
+        options = {**table, **dict(_options(overrides.get("algorithm_options", ())))}
+        return cls(**{**base, **overrides, "algorithm_options": options})
 
     @classmethod
     def paper(cls, task: str, **overrides: Any) -> Config:
@@ -237,9 +181,11 @@ class Config:
         return self.algorithm if isinstance(self.algorithm, str) else type(self.algorithm).__name__
 
     def to_dict(self) -> dict[str, Any]:
-        """Every field as JSON values (results files, checkpoints). A task `registry.make` built is its name (and
-        "task_options" if it was made with options); other task and emitter objects are their repr."""
+        """Every field as JSON values (results files, checkpoints): a preset's options all written out (its
+        defaults too, so a file keeps its meaning if a default changes). A task `registry.make` built is its name
+        (and "task_options" if it was made with options); other task and emitter objects are their repr."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["algorithm_options"] = self.options
         named = registry.name_of(self.task)
         out["task"] = named[0] if named else repr(self.task)
         if named and named[1]:
@@ -273,17 +219,24 @@ class Config:
         return self.k + self.neighbour_slack
 
     def params(self) -> Params:
-        """The traced scalar parameters, initialised from this config."""
-        f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        return Params(
-            t_dist=f(self.t_dist), t_nov=f(self.t_nov), t_qua=f(self.t_qua),
-            learning_rate=f(self.learning_rate), iso_sigma=f(self.iso_sigma),
-            line_sigma=f(self.line_sigma), adaptation_step_size=f(self.adaptation_step_size),
-        )
+        """The traced parameters: `t_dist` and the emitter's defaults (`Emitter.default_params()`)."""
+        return Params(t_dist=jnp.asarray(self.t_dist, jnp.float32), emitter=self.emitter.default_params())
+
+
+# The fields a config had before version 0.10 put a preset's settings into `algorithm_options`.
+_FLAT = ("t_nov", "t_qua", "learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size",
+         "iso_sigma", "line_sigma", "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor",
+         "parent_weight", "quality_share", "wide_scale", "budgeted")
+# Adaptation's settings, arguments of `mqd_jax.adapt` since version 0.10.
+_ADAPTATION = ("adaptation_step_size", "adaptation_steps")
+# Today's defaults of the flat fields, for configs saved before a field existed.
+_FLAT_DEFAULTS = {**presets.options("mqd"), **presets.options("mqd-paper")}
 
 
 def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
-    """A config dict saved by an earlier version in today's fields: `physics_backend` "auto" is dropped (since
+    """A config dict saved by an earlier version in today's fields. Before version 0.10 a preset's settings were
+    fields of the config: they become its `algorithm_options` (those the preset takes), and adaptation's two
+    (arguments of `adapt` now) are dropped. Before that: `physics_backend` "auto" is dropped (since
     version 0.2 a robot task's backend is an option of its construction, `task_options`); before version 0.3
     (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
     defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer; before version
@@ -292,23 +245,30 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     `quality_share`) it made no quality steps; before version 0.9 (configs without `wide_scale`) it varied its
     pool at one scale."""
     saved = dict(saved)
+    if "algorithm_options" in saved:  # today's
+        return saved
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
         if saved.get("algorithm") == "mqd":
             saved["algorithm"] = "mqd-paper"
         for name in ("ensemble_size", "optimism"):  # fields that did not exist: today's defaults
-            saved[name] = Config.__dataclass_fields__[name].default
+            saved[name] = _FLAT_DEFAULTS[name]
     if "steering_share" not in saved:  # before version 0.5 "mqd" did not steer
-        saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.steering_share
+        saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["steering_share"]
     if "anchor" not in saved:  # before version 0.6 "mqd" anchored at the nearest skill
-        saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else Config.anchor
+        saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["anchor"]
     if "parent_weight" not in saved:  # before version 0.7 "mqd" ranked by the predicted distance alone
-        saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else Config.parent_weight
+        saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["parent_weight"]
     if "quality_share" not in saved:  # before version 0.8 "mqd" made no quality steps
-        saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else Config.quality_share
+        saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["quality_share"]
     if "wide_scale" not in saved:  # before version 0.9 "mqd" varied its pool at one scale
-        saved["wide_scale"] = 1.0 if saved.get("algorithm") == "mqd" else Config.wide_scale
+        saved["wide_scale"] = 1.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["wide_scale"]
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}
+    flat = {name: saved.pop(name) for name in _FLAT if name in saved}  # before version 0.10: fields of the config
+    for name in _ADAPTATION:
+        saved.pop(name, None)
+    taken = presets.options(saved["algorithm"]) if saved.get("algorithm") in PRESETS else {}
+    saved["algorithm_options"] = {name: value for name, value in flat.items() if name in taken}
     return saved

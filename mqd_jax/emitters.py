@@ -8,6 +8,13 @@ its own (any pytree, e.g. a `flax.struct` dataclass):
     proposal = emitter.propose(key, state, repertoire, task, params, num)
     state, metrics = emitter.update(key, state, proposal, evaluated, repertoire, task, params)
 
+Static settings are the dataclass's fields; traced parameters (float32 scalars a
+run may `vmap` over) are the emitter's own: `default_params()` gives them from
+its fields, `check_params` refuses bad concrete values, and `propose`/`update`
+read them as `params.emitter.<name>` (`mqd_jax.params.Params`; the engine's
+`params.t_dist` beside them). `check_run(population_size, max_generations)`
+refuses, before anything is traced, a run the emitter cannot serve.
+
 `propose` gives `num` candidate actions and which of them to roll out;
 `update` sees their results (`Evaluated`) and the repertoire after they were
 inserted, and returns the scalars named by `metrics()` (they join a run's
@@ -23,19 +30,17 @@ This module holds the protocol and the two emitters of the paper's baselines:
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
 from mqd_jax import selection, variation
-from mqd_jax.checks import is_real
+from mqd_jax.checks import check_traced, is_real
+from mqd_jax.params import Params
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
-
-if TYPE_CHECKING:
-    from mqd_jax.config import Params
 
 
 @struct.dataclass
@@ -95,6 +100,18 @@ class Emitter:
         del key, task
         return ()
 
+    def default_params(self) -> Any:
+        """The emitter's traced parameters (a pytree of float32 scalars), from its fields (default: none)."""
+        return ()
+
+    def check_params(self, params: Any) -> None:
+        """Raises ValueError, naming the parameter, for a bad concrete value of `default_params()`'s kind."""
+        del params
+
+    def check_run(self, population_size: int, max_generations: int) -> None:
+        """Raises ValueError if the emitter cannot serve a run of this size (default: it can)."""
+        del population_size, max_generations
+
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
         """`num` candidates from the repertoire as it stands (see `Proposal`)."""
@@ -126,9 +143,18 @@ class Uniform(Emitter):
                         parents=jnp.full(num, -1, jnp.int32))
 
 
+@struct.dataclass
+class IsoLineParams:
+    """IsoLine's traced parameters: the iso step `iso_sigma` (x the action range) and the line step `line_sigma`."""
+
+    iso_sigma: jax.Array
+    line_sigma: jax.Array
+
+
 @dataclasses.dataclass(frozen=True)
 class IsoLine(Emitter):
-    """QD: parents drawn in proportion to novelty, iso+line children (`params.iso_sigma`, `params.line_sigma`).
+    """QD: parents drawn in proportion to novelty, iso+line children (Vassiliades & Mouret 2018):
+    `x1 + iso_sigma (high - low) N(0, I) + line_sigma (x2 - x1) N(0, 1)`.
 
     Uniform actions while the repertoire is empty; every candidate is rolled out. A child's `parents` entry is
     its first parent x1, from which the iso noise starts (-1 for a uniform action).
@@ -136,14 +162,28 @@ class IsoLine(Emitter):
     `scales` (finite floats > 0): the children come in equal parts (the first parts one larger where `num` does
     not divide), part i with both steps times `scales[i]`, each part from its own key `fold_in(key, i)`. One
     scale (the default, (1.0,), the paper's QD) draws from `key` itself.
+
+    `iso_sigma`, `line_sigma` (finite floats >= 0): the defaults of its traced parameters (`IsoLineParams`).
     """
 
     scales: tuple[float, ...] = (1.0,)
+    iso_sigma: float = 0.02
+    line_sigma: float = 0.1
 
     def __post_init__(self) -> None:
         if not (isinstance(self.scales, tuple) and self.scales and all(is_real(s) and s > 0 for s in self.scales)):
             raise ValueError(f"IsoLine.scales={self.scales!r} is invalid: expected a non-empty tuple of finite "
                              "floats > 0")
+        for name in ("iso_sigma", "line_sigma"):
+            if not (is_real(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"IsoLine.{name}={getattr(self, name)!r} is invalid: expected a finite float >= 0")
+
+    def default_params(self) -> IsoLineParams:
+        return IsoLineParams(jnp.float32(self.iso_sigma), jnp.float32(self.line_sigma))
+
+    def check_params(self, params: IsoLineParams) -> None:
+        for name in ("iso_sigma", "line_sigma"):
+            check_traced("IsoLine.params", name, getattr(params, name))
 
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
@@ -163,8 +203,8 @@ class IsoLine(Emitter):
         fresh = variation.uniform(_uniform_key(key), num, low, high)
         parents = selection.sample_parents(k_parents, repertoire.novelty, repertoire.valid, 2 * num)
         x = repertoire.actions[parents].reshape(2, num, -1)
-        children = variation.iso_line(k_vary, x[0], x[1], params.iso_sigma * scale, params.line_sigma * scale,
-                                      low, high)
+        children = variation.iso_line(k_vary, x[0], x[1], params.emitter.iso_sigma * scale,
+                                      params.emitter.line_sigma * scale, low, high)
         bred = repertoire.count > 0
         return Proposal(jnp.where(bred, children, fresh), jnp.ones(num, bool),
                         parents=jnp.where(bred, parents[:num], -1).astype(jnp.int32))

@@ -33,7 +33,7 @@ import os
 import tempfile
 import zipfile
 import zlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -284,8 +284,8 @@ def _matching(folder: str, patterns: Sequence[str]) -> list[str]:
     return sorted(n for n in names if any(fnmatch.fnmatchcase(n, p) for p in patterns))
 
 
-def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequence[str],
-          overwrite: bool) -> list[str]:
+def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequence[str], overwrite: bool,
+          upgrade: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> list[str]:
     """Makes `folder` the results folder of `identity` (call while holding its lock); returns the files removed.
 
     `patterns` are the glob patterns of the files this kind of command writes. The
@@ -296,7 +296,8 @@ def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequenc
     those results are removed first: the files the manifest lists or, without
     one, the files matching `patterns` that carry mqd-jax's provenance. A user's
     file is never removed: one whose name matches `patterns` is refused, even with
-    `overwrite`, naming it.
+    `overwrite`, naming it. `upgrade` brings an identity saved by an earlier version to today's form before it
+    is compared.
     """
     try:
         saved = _manifest(folder)
@@ -314,7 +315,9 @@ def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequenc
         raise ValueError(f"{folder!r} refused: {', '.join(foreign)} {'is' if len(foreign) == 1 else 'are'} not "
                          "written by mqd-jax here (not in its manifest mqd.json) but named like its results: move "
                          f"{'it' if len(foreign) == 1 else 'them'} away, or write to another folder")
-    if saved is not None and saved.get("kind") == kind and saved.get("identity") == _as_read(dict(identity)):
+    if saved is not None and upgrade is not None:
+        saved["identity"] = upgrade(saved["identity"])
+    if saved is not None and saved.get("kind") == kind and _as_read(saved.get("identity")) == _as_read(dict(identity)):
         return []
     if not ours:  # nothing to lose (a folder of ours whose run stopped before writing anything, or a new one)
         why = None

@@ -18,7 +18,7 @@ anchoring are the `ModelEmitter`'s; its `acquisition` is not used, and a
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -27,11 +27,9 @@ from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.checks import is_int
 from mqd_jax.emitters import Proposal
 from mqd_jax.model_emitter import ModelEmitter, ModelEmitterState
+from mqd_jax.params import Params
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
-
-if TYPE_CHECKING:
-    from mqd_jax.config import Params
 
 
 def survivors(written: jax.Array, capacity: int) -> jax.Array:
@@ -71,7 +69,7 @@ class Imagination(ModelEmitter):
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
         def imagine(rep: Repertoire, key: jax.Array) -> tuple[Repertoire, tuple[Any, ...]]:
-            pool = self.inner.propose(key, state.inner, rep, task, params, num)
+            pool = self.inner.propose(key, state.inner, rep, task, params.part(params.emitter.inner), num)
             plain, anchored = self.predictions(state, pool.actions, rep, task, pool.parents)
             predicted = self.chosen(state, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,

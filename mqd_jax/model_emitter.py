@@ -47,7 +47,7 @@ come after the others.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -58,14 +58,12 @@ from mqd_jax import archive as archive_lib
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax import steering as steering_lib
 from mqd_jax import validity as validity_lib
-from mqd_jax.checks import is_int
+from mqd_jax.checks import check_traced, is_int, is_real
 from mqd_jax.emitters import Emitter, Evaluated, Proposal
+from mqd_jax.params import Params
 from mqd_jax.pursuit import Fallback, running_average
 from mqd_jax.repertoire import AddStatus, Repertoire
 from mqd_jax.task import Task
-
-if TYPE_CHECKING:
-    from mqd_jax.config import Params
 
 _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
             "opener_auc": jnp.float32}
@@ -74,6 +72,16 @@ ANCHORING = ("none", "always", "auto")
 ANCHORS = ("parent", "nearest")
 # The weight of a generation's held-out error in anchoring="auto"'s averages.
 ERROR_AVERAGING = 0.2
+
+
+@struct.dataclass
+class ModelEmitterParams:
+    """A `ModelEmitter`'s traced parameters: the model's Adam `learning_rate` (its validity classifier's too),
+    and the inner emitter's and the acquisition rule's own."""
+
+    learning_rate: jax.Array
+    inner: Any = ()
+    acquisition: Any = ()
 
 
 @struct.dataclass
@@ -115,6 +123,7 @@ class ModelEmitter(Emitter):
       hidden_size: the model's hidden units (per member).
       ensemble_size: the members of the model's ensemble.
       batch_size, num_batches: training mini-batches per generation (per member).
+      learning_rate: Adam's rate, the default of the traced `ModelEmitterParams.learning_rate`.
       warmup_samples: rollouts before the model is trained and used.
       anchoring: "none", "always" (predictions anchored at a repertoire skill, `anchor`) or "auto" (whichever
         of the plain and the anchored ones has the lower recent held-out error; see the module's doc).
@@ -151,6 +160,7 @@ class ModelEmitter(Emitter):
     ensemble_size: int = 1
     batch_size: int = 16
     num_batches: int = 500
+    learning_rate: float = 1e-3
     warmup_samples: int = 0
     anchoring: str = "none"
     anchor: str = "parent"
@@ -168,6 +178,9 @@ class ModelEmitter(Emitter):
             value = getattr(self, name)
             if not (is_int(value) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
+        if not (is_real(self.learning_rate) and self.learning_rate > 0):
+            raise ValueError(f"ModelEmitter.learning_rate={self.learning_rate!r} is invalid: expected a finite "
+                             "float > 0")
         if self.anchoring == "nearest":
             raise ValueError("ModelEmitter.anchoring='nearest' was split in version 0.6: anchoring='always' "
                              "anchors every prediction, at the skill `anchor` names (anchor='nearest' as before)")
@@ -191,6 +204,35 @@ class ModelEmitter(Emitter):
         clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
+
+    def default_params(self) -> ModelEmitterParams:
+        return ModelEmitterParams(jnp.float32(self.learning_rate), self.inner.default_params(),
+                                  acquisition.params_of(self.acquisition))
+
+    def check_params(self, params: ModelEmitterParams) -> None:
+        check_traced("ModelEmitter.params", "learning_rate", params.learning_rate, inclusive=False)
+        self.inner.check_params(params.inner)
+        acquisition.check_params_of(self.acquisition, params.acquisition)
+
+    def check_run(self, population_size: int, max_generations: int) -> None:
+        self.inner.check_run(self.acquisition.pool_size(population_size), max_generations)
+        budget = population_size * max_generations
+        if self.warmup_samples >= budget:
+            raise ValueError(f"ModelEmitter.warmup_samples={self.warmup_samples} is invalid for this run: expected "
+                             f"fewer than its population_size x max_generations ({budget}) rollouts, or the model "
+                             "is never used")
+        if self.steering is not None:
+            self._steered_count(self.acquisition.pool_size(population_size), population_size)
+
+    def _steered_count(self, pool_size: int, num: int) -> int:
+        """The rows steering replaces in a pool of `pool_size` for `num` rollouts; ValueError unless at least 1,
+        leaving `num` to the inner emitter."""
+        count = self.steering.count(pool_size)
+        if not 1 <= count <= pool_size - num:
+            raise ValueError(f"ModelEmitter.steering={self.steering!r} steers {count} of a pool of {pool_size}: "
+                             f"expected at least 1, leaving the inner emitter at least the {num} rollouts of a "
+                             "generation (a smaller share, or a larger pool)")
+        return count
 
     def init(self, key: jax.Array, task: Task) -> ModelEmitterState:
         rollouts = (archive_lib.Archive.empty(self.rollout_buffer, task.action_dim, task.behavior_dim)
@@ -269,7 +311,8 @@ class ModelEmitter(Emitter):
                 num: int) -> Proposal:
         pool_size = self.acquisition.pool_size(num)
         with jax.named_scope("inner"):
-            pool = self.inner.propose(key, state.inner, repertoire, task, params, pool_size)
+            pool = self.inner.propose(key, state.inner, repertoire, task, params.part(params.emitter.inner),
+                                      pool_size)
         warm_up = state.evaluations < self.warmup_samples
         if self.steering is not None:
             with jax.named_scope("steer"):
@@ -279,8 +322,8 @@ class ModelEmitter(Emitter):
             plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
             judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
         with jax.named_scope("acquire"):
-            rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up, params,
-                                                               num)
+            rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up,
+                                                               params.part(params.emitter.acquisition), num)
             from_model = jnp.ones(num, bool)
             if self.fallback is not None:
                 rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
@@ -304,11 +347,7 @@ class ModelEmitter(Emitter):
         is empty; their `parents` by the steering parents where the pool names parents), and which rows [P]
         were."""
         pool_size = pool.actions.shape[0]
-        count = self.steering.count(pool_size)
-        if count == 0 or pool_size - count < num:
-            raise ValueError(f"ModelEmitter.steering={self.steering!r} steers {count} of a pool of {pool_size}: "
-                             f"expected at least 1, leaving the inner emitter at least the {num} rollouts of a "
-                             "generation (a smaller share, or a larger pool)")
+        count = self._steered_count(pool_size, num)
         jacobian = jax.vmap(jax.jacfwd(lambda a: self.predict(state, a, task)[0]))
         quality_gradient = jax.vmap(jax.grad(lambda a: self.predict(state, a, task)[1]))
         children, steering_parents = self.steering.steer(key, repertoire, jacobian, task, params, count,
@@ -336,12 +375,12 @@ class ModelEmitter(Emitter):
         due = (evaluations >= self.warmup_samples) & has_data
         with jax.named_scope("train"):
             trained, loss = jax.lax.cond(
-                due, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
-                                         self.num_batches),
+                due, lambda: model.train(state.model, key, data, task, params.emitter.learning_rate,
+                                         self.batch_size, self.num_batches),
                 lambda: (state.model, jnp.float32(jnp.nan)))
         inner_proposal = Proposal(proposal.actions, proposal.rollout, proposal.info["inner"])
         inner, inner_metrics = self.inner.update(jax.random.fold_in(key, 1), state.inner, inner_proposal, evaluated,
-                                                 repertoire, task, params)
+                                                 repertoire, task, params.part(params.emitter.inner))
         metrics = {"discarded": proposal.info["discarded"], "model_loss": loss,
                    "prediction_error": _prediction_error(proposal.info["predicted_behaviors"], evaluated),
                    "opener_auc": opener_auc(proposal.info["predicted_distance"], evaluated), **inner_metrics}
@@ -356,7 +395,7 @@ class ModelEmitter(Emitter):
             metrics["validity_auc"] = auc(proposal.info["validity"], proposal.rollout & evaluated.usable,
                                           proposal.rollout & ~evaluated.usable)
             validity = self.validity.update(jax.random.fold_in(key, 3), state.validity, proposal.actions,
-                                            proposal.rollout, evaluated.usable, task, params.learning_rate)
+                                            proposal.rollout, evaluated.usable, task, params.emitter.learning_rate)
         steering = state.steering
         if self.steering is not None:
             metrics["steered"] = proposal.info["steered"].sum(dtype=jnp.int32)

@@ -1,77 +1,131 @@
-"""The named algorithms, as compositions of emitters.
+"""The named algorithms: functions with keyword arguments that return an emitter (as optax's `adam(...)` returns
+a gradient transformation).
 
-    "random"    -> Uniform()
-    "qd"        -> IsoLine()
-    "mqd"       -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
-                                Diverse(pool_factor, optimism, parent_weight=parent_weight,
-                                        quality_share=quality_share),
-                                ensemble_size members,
-                                anchoring="auto", anchor=anchor, fallback=Fallback(),
-                                steering=Steering(share=steering_share))    (this library's M-QD)
-    "mqd-paper" -> ModelEmitter(IsoLine(), Threshold())                      (the paper's filter)
-                   ModelEmitter(IsoLine(), Budgeted(pool_factor))            (cfg.budgeted)
+    random()                                              -> Uniform()
+    qd(iso_sigma, line_sigma)                             -> IsoLine()
+    mqd(pool_factor=8, optimism=1.0, ...)                 -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
+                                                                          Diverse(...), anchoring="auto",
+                                                                          fallback=Fallback(), steering=Steering(...))
+    mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua))
+                                                             (or Budgeted(pool_factor) when budgeted)
 
-with the model's settings from the config (Table II). "mqd" is the best
-composition measured in `experiments/sample_efficiency.py` (docs/results.md);
-"mqd-paper" reproduces the paper's Algorithm 1 (one network, Table II). A
-config whose `algorithm` is an emitter runs that emitter.
+Each preset's defaults are in its signature: the model's are Table II's 2D column (`TABLE_II` holds both
+columns). A `Config` names a preset as `algorithm="mqd"` with `algorithm_options={"pool_factor": 16}`,
+checked against the signature (`options`, `build`); `k` is the run's (`Config.k`), passed by the config.
+"mqd" is the best composition measured (docs/results.md); "mqd-paper" reproduces the paper's Algorithm 1.
 """
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from mqd_jax.acquisition import Budgeted, Diverse, Threshold
-from mqd_jax.config import Config
 from mqd_jax.emitters import Emitter, IsoLine, Uniform
 from mqd_jax.model_emitter import Fallback, ModelEmitter
 from mqd_jax.steering import Steering
 
-
-def _mqd(cfg: Config) -> ModelEmitter:
-    rule = Diverse(cfg.pool_factor, cfg.optimism, parent_weight=cfg.parent_weight, quality_share=cfg.quality_share)
-    # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 must repeat version 0.8's runs.
-    inner = IsoLine() if cfg.wide_scale == 1 else IsoLine(scales=(1.0, cfg.wide_scale))
-    return ModelEmitter(inner, rule, k=cfg.k,
-                        hidden_size=cfg.hidden_size, ensemble_size=cfg.ensemble_size, batch_size=cfg.batch_size,
-                        num_batches=cfg.num_batches, warmup_samples=cfg.warmup_samples, anchoring="auto",
-                        anchor=cfg.anchor, fallback=Fallback(),
-                        steering=Steering(share=cfg.steering_share) if cfg.steering_share else None)
+# Table II: the model's settings in the paper's two columns (the 2D column is every preset's default).
+TABLE_II = {
+    "2d": {"learning_rate": 1e-3, "batch_size": 16, "num_batches": 500, "warmup_samples": 1000, "hidden_size": 32},
+    "robot": {"learning_rate": 1e-3, "batch_size": 16, "num_batches": 500, "warmup_samples": 1000,
+              "hidden_size": 64},
+}
+# Options that are not the user's to give: the config passes its own.
+CONTEXT = ("k",)
 
 
-def _mqd_paper(cfg: Config) -> ModelEmitter:
-    return ModelEmitter(IsoLine(), Budgeted(cfg.pool_factor) if cfg.budgeted else Threshold(), k=cfg.k,
-                        hidden_size=cfg.hidden_size, batch_size=cfg.batch_size, num_batches=cfg.num_batches,
-                        warmup_samples=cfg.warmup_samples)
+def random() -> Emitter:
+    """RANDOM: actions uniform in the action box."""
+    return Uniform()
 
 
-# Every name in `config.PRESETS`.
-_BUILDERS: dict[str, Callable[[Config], Emitter]] = {"random": lambda cfg: Uniform(), "qd": lambda cfg: IsoLine(),
-                                                     "mqd": _mqd, "mqd-paper": _mqd_paper}
+def qd(iso_sigma: float = 0.02, line_sigma: float = 0.1) -> Emitter:
+    """QD: iso+line children of parents drawn in proportion to novelty (`IsoLine`)."""
+    return IsoLine(iso_sigma=iso_sigma, line_sigma=line_sigma)
 
 
-def emitter(cfg: Config) -> Emitter:
-    """The emitter a run of `cfg` uses: the preset `cfg.algorithm` names, or `cfg.algorithm` itself."""
-    return cfg.algorithm if isinstance(cfg.algorithm, Emitter) else _BUILDERS[cfg.algorithm](cfg)
+def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: float = 1.0,
+        quality_share: float = 0.1, wide_scale: float = 2.0, steering_share: float = 0.25, anchor: str = "parent",
+        ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500,
+        warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
+        line_sigma: float = 0.1) -> Emitter:
+    """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
+
+    Args:
+      k: the neighbours of the model's predicted novelty (the run's `Config.k`).
+      pool_factor: candidates per rollout the model chooses from (`Diverse`).
+      optimism: the weight of the ensemble's spread in the optimistic distance (`Diverse.beta`).
+      parent_weight: the exponent of a predicted opener's parent's relative novelty in its rank.
+      quality_share: the share of the choices that go first to predicted quality gains in held niches.
+      wide_scale: half the pool's children vary at this multiple of both iso+line steps (1: one scale).
+      steering_share: the share of the pool aimed by the model's Jacobian (`Steering`; 0: none).
+      anchor: where predictions are anchored: the candidate's "parent" or the "nearest" skill.
+      ensemble_size: the model's members (1: one network).
+      hidden_size, batch_size, num_batches, warmup_samples, learning_rate: the model and its training (Table II).
+      iso_sigma, line_sigma: the iso+line steps of the inner `IsoLine`.
+    """
+    rule = Diverse(pool_factor, optimism, parent_weight=parent_weight, quality_share=quality_share)
+    # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
+    scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
+    return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, k=k,
+                        hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
+                        num_batches=num_batches, learning_rate=learning_rate, warmup_samples=warmup_samples,
+                        anchoring="auto", anchor=anchor, fallback=Fallback(),
+                        steering=Steering(share=steering_share) if steering_share else None)
 
 
-# The model fields of `Config` (every other field configures all presets alike), and those each preset reads:
-# batches of one sweep must agree on the model fields both of their presets read, and only on those.
-_TRAINING = ("learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size")
-_MQD = (*_TRAINING, "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor", "parent_weight",
-        "quality_share", "wide_scale")
-MODEL_FIELDS = frozenset((*_MQD, "t_nov", "t_qua", "budgeted"))
+def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: bool = False, pool_factor: int = 8,
+              hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500, warmup_samples: int = 1000,
+              learning_rate: float = 1e-3, iso_sigma: float = 0.02, line_sigma: float = 0.1) -> Emitter:
+    """The paper's M-QD (Algorithm 1): roll out the candidates whose predicted novelty exceeds `t_nov` or whose
+    predicted quality improvement exceeds `t_qua` (`Threshold`); `budgeted`: instead rank `pool_factor` x the
+    population and roll out the best population (`Budgeted`). The model's settings: Table II."""
+    if not isinstance(budgeted, bool):
+        raise ValueError(f"mqd-paper: budgeted={budgeted!r} is invalid: expected a bool")
+    rule = Budgeted(pool_factor, t_nov=t_nov) if budgeted else Threshold(t_nov=t_nov, t_qua=t_qua)
+    return ModelEmitter(IsoLine(iso_sigma=iso_sigma, line_sigma=line_sigma), rule, k=k, hidden_size=hidden_size,
+                        batch_size=batch_size, num_batches=num_batches, learning_rate=learning_rate,
+                        warmup_samples=warmup_samples)
 
 
-def model_fields_read(cfg: Mapping[str, Any]) -> frozenset[str]:
-    """The model fields that the preset of a config dict (`Config.to_dict`) reads; all of them for an algorithm
-    that is not a preset."""
-    algorithm = cfg.get("algorithm")
-    if algorithm in ("random", "qd"):
-        return frozenset()
-    if algorithm == "mqd":
-        return frozenset(_MQD)
-    if algorithm == "mqd-paper":  # the pool only when budgeted
-        return frozenset((*_TRAINING, "t_nov", "t_qua", "budgeted", *(("pool_factor",) if cfg.get("budgeted") else ())))
-    return MODEL_FIELDS
+# The presets `Config.algorithm` may name.
+PRESETS: dict[str, Callable[..., Emitter]] = {"mqd": mqd, "mqd-paper": mqd_paper, "qd": qd, "random": random}
+
+
+def options(name: str) -> dict[str, Any]:
+    """{option: default} of the preset `name`, without the config's own (`CONTEXT`)."""
+    return {p.name: p.default for p in inspect.signature(PRESETS[name]).parameters.values() if p.name not in CONTEXT}
+
+
+def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
+    """Every option of the preset `name`: its defaults with `given` over them. Raises ValueError for an option it
+    does not take, or a value of another type than its default's (an int is a float too)."""
+    known = options(name)
+    for option, value in given.items():
+        if option in CONTEXT:
+            raise ValueError(f"algorithm_options: {option!r} is the run's own (Config.{option}), not an option of "
+                             f"{name!r}")
+        if option not in known:
+            listed = ", ".join(f"{o}={d!r}" for o, d in known.items()) or "none"
+            raise ValueError(f"algorithm_options: {name!r} takes no option {option!r}; its options: {listed}")
+        default = known[option]
+        same = type(value) is type(default) or (type(default) is float and type(value) is int)
+        if not same:
+            raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected a "
+                             f"{type(default).__name__} (default {default!r})")
+    return {**known, **{o: float(v) if type(known[o]) is float else v for o, v in given.items()}}
+
+
+def build(name: str, given: Mapping[str, Any], k: int) -> Emitter:
+    """The emitter of the preset `name` with the options `given` (checked: `resolved`) and the run's `k`."""
+    settings = resolved(name, given)
+    if "k" in inspect.signature(PRESETS[name]).parameters:
+        settings["k"] = k
+    return PRESETS[name](**settings)
+
+
+def table_ii(name: str, column: str) -> dict[str, Any]:
+    """The options of Table II's `column` ("2d" or "robot") that the preset `name` takes."""
+    return {o: v for o, v in TABLE_II[column].items() if o in options(name)}

@@ -42,7 +42,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax import checkpoint, presets, registry
+from mqd_jax import checkpoint, registry
 from mqd_jax.config import PRESETS, Config, upgraded
 from mqd_jax.folders import Damaged, differences, read_json, read_npz, write_atomically, write_json, write_npz
 from mqd_jax.provenance import machine, provenance
@@ -134,10 +134,12 @@ def scan(out: str) -> tuple[list[tuple[str, dict[str, Any]]], dict[str, Damaged]
 
 
 def _comparable(cfg: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
-    """The fields of `cfg` that must agree with `other`'s, a batch of the same task: all but the algorithm and the
-    model fields that not both presets read (a QD batch may sit beside an M-QD batch of any ensemble size)."""
-    unread = presets.MODEL_FIELDS - (presets.model_fields_read(cfg) & presets.model_fields_read(other))
-    return {k: v for k, v in cfg.items() if k != "algorithm" and k not in unread}
+    """The settings of `cfg` that must agree with `other`'s, a batch of the same task: every field but the
+    algorithm, and of its options those that `other`'s preset takes too (a QD batch may sit beside an M-QD batch
+    of any ensemble size, but both must vary with the same iso_sigma)."""
+    options, others = cfg.get("algorithm_options", {}), other.get("algorithm_options", {})
+    shared = {f"algorithm_options.{k}": v for k, v in options.items() if k in others}
+    return {**{k: v for k, v in cfg.items() if k not in ("algorithm", "algorithm_options")}, **shared}
 
 
 @dataclasses.dataclass(frozen=True)

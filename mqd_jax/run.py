@@ -21,9 +21,10 @@ import numpy as np
 from flax import struct
 
 from mqd_jax import archive as archive_lib
-from mqd_jax import coverage, diagnostics, presets, registry, repertoire
-from mqd_jax.config import Config, Params, check_params
+from mqd_jax import coverage, diagnostics, registry, repertoire
+from mqd_jax.config import Config, check_params
 from mqd_jax.emitters import Evaluated, Proposal
+from mqd_jax.params import Params
 from mqd_jax.repertoire import AddStatus
 from mqd_jax.task import Task, check_outputs
 
@@ -79,7 +80,7 @@ def get_task(cfg: Config) -> Task:
 
 def metric_dtypes(cfg: Config) -> dict[str, Any]:
     """{name: dtype} of a generation's metrics: the engine's (`METRICS`) and the emitter's."""
-    return {**METRICS, **presets.emitter(cfg).metrics()}
+    return {**METRICS, **cfg.emitter.metrics()}
 
 
 @functools.cache
@@ -111,7 +112,7 @@ def _init(key: jax.Array, cfg: Config) -> State:
         archive=archive_lib.Archive.empty(cfg.archive_capacity, n, d),
         coverage=coverage.empty(np.asarray(task.behavior_low), np.asarray(task.behavior_high),
                                 _reachable(cfg), cfg.t_dist),
-        emitter=presets.emitter(cfg).init(k_emitter, task),
+        emitter=cfg.emitter.init(k_emitter, task),
         key=key,
         generation=jnp.int32(0),
         num_evaluations=jnp.int32(0),
@@ -150,7 +151,7 @@ def check_state(state: State, cfg: Config, batch: tuple[int, ...] = (), fields: 
                     if tuple(np.shape(g)) != (*batch, *w.shape) or jnp.result_type(g) != w.dtype), None)
     if why is not None:
         raise ValueError(f"the state does not belong to this config (task {cfg.task!r}, capacity {cfg.capacity}, "
-                         f"hidden_size {cfg.hidden_size}): {why}")
+                         f"algorithm {cfg.algorithm_name!r} {cfg.options}): {why}")
 
 
 @struct.dataclass
@@ -208,7 +209,7 @@ def _propose(state: State, cfg: Config, params: Params) -> Candidates:
     """Stage propose: `population_size` candidates from the emitter, and the key of their rollouts."""
     task, pop = get_task(cfg), cfg.population_size
     _, k_propose, k_rollout, _ = jax.random.split(state.key, 4)
-    emitter = presets.emitter(cfg)
+    emitter = cfg.emitter
     proposal = emitter.propose(k_propose, state.emitter, state.repertoire, task, params, pop)
     shapes = (jnp.shape(proposal.actions), jnp.shape(proposal.rollout), jnp.result_type(proposal.rollout))
     if shapes != ((pop, task.action_dim), (pop,), jnp.bool_):
@@ -268,7 +269,7 @@ def _cover(grid: coverage.CoverageGrid, before: repertoire.Repertoire, evaluated
 def _update_emitter(key: jax.Array, state: State, candidates: Candidates, evaluated: Evaluated,
                     rep: repertoire.Repertoire, cfg: Config, params: Params) -> tuple[Any, dict[str, jax.Array]]:
     """Stage emitter update: the emitter learns from the results; its metrics, checked against its `metrics()`."""
-    emitter = presets.emitter(cfg)
+    emitter = cfg.emitter
     proposal = Proposal(candidates.actions, candidates.rollout, candidates.info)
     emitter_state, metrics = emitter.update(key, state.emitter, proposal, evaluated, rep, get_task(cfg), params)
     declared = emitter.metrics()

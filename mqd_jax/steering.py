@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -43,12 +42,10 @@ from mqd_jax import repertoire as repertoire_lib
 from mqd_jax import selection
 from mqd_jax.checks import is_real
 from mqd_jax.emitters import action_bounds
+from mqd_jax.params import Params
 from mqd_jax.pursuit import Fallback
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
-
-if TYPE_CHECKING:
-    from mqd_jax.config import Params
 
 # actions [m, n] -> the model's behavior Jacobians [m, d, n] (real units) at them.
 Jacobian = Callable[[jax.Array], jax.Array]
@@ -66,7 +63,8 @@ class Steering:
       parents: "voronoi" (the skill nearest to a target uniform in the behavior box, toward it) or "novelty"
         (drawn as IsoLine draws parents, in proportion to novelty, toward a direction uniform on the sphere).
       step: "jacobian" (the model's step toward the aim) or "mutation" (the ablation without the model: the
-        parent's iso mutation, `params.iso_sigma` x the action range, as IsoLine's without its line term).
+        parent's iso mutation, `iso_sigma` x the action range, as IsoLine's without its line term).
+      iso_sigma: the step="mutation" ablation's iso step (IsoLine's default).
       quality: the null-space step up the model's quality gradient, as a multiple of the behavior step's
         action length (0: none; needs step="jacobian").
       pursuit: None to steer `share` of the pool at every generation, or a `pursuit.Fallback` whose share
@@ -81,6 +79,7 @@ class Steering:
     pursuit: Fallback | None = None
     step: str = "jacobian"
     quality: float = 0.0
+    iso_sigma: float = 0.02
 
     def __post_init__(self) -> None:
         for name in ("share", "step_low", "step_high"):
@@ -96,8 +95,9 @@ class Steering:
             raise ValueError(f"Steering.step={self.step!r} is invalid: expected one of {STEPS}")
         if self.pursuit is not None and not isinstance(self.pursuit, Fallback):
             raise ValueError(f"Steering.pursuit={self.pursuit!r} is invalid: expected None or a Fallback")
-        if not (is_real(self.quality) and self.quality >= 0):
-            raise ValueError(f"Steering.quality={self.quality!r} is invalid: expected a finite float >= 0")
+        for name in ("quality", "iso_sigma"):
+            if not (is_real(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"Steering.{name}={getattr(self, name)!r} is invalid: expected a finite float >= 0")
         if self.quality and self.step != "jacobian":
             raise ValueError(f"Steering.quality={self.quality!r} needs step='jacobian' (the model's quality gradient)")
         if self.step_low > self.step_high:
@@ -116,7 +116,7 @@ class Steering:
         if self.step == "mutation":
             k_target, k_step, k_iso = jax.random.split(key, 3)
             parents, _ = self.aims(k_target, k_step, repertoire, task, params, num)
-            change = params.iso_sigma * (high - low) * jax.random.normal(k_iso, (num, low.shape[0]))
+            change = self.iso_sigma * (high - low) * jax.random.normal(k_iso, (num, low.shape[0]))
             return jnp.clip(repertoire.actions[parents] + change, low, high), parents
         k_target, k_step = jax.random.split(key)
         parents, aim = self.aims(k_target, k_step, repertoire, task, params, num)

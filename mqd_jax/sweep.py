@@ -20,10 +20,9 @@ diverge after tens of generations. They agree in distribution.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +32,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from mqd_jax import diagnostics
 from mqd_jax.checks import is_int
-from mqd_jax.config import Config, Params, check_params
+from mqd_jax.config import Config, check_params
+from mqd_jax.params import Params
 from mqd_jax.run import State, get_task, init, run_generations
 
 Metrics = dict[str, np.ndarray]
@@ -46,21 +46,39 @@ def seed_keys(seeds: int, key: jax.Array | None = None) -> jax.Array:
     return jax.random.split(jax.random.PRNGKey(0) if key is None else key, seeds)
 
 
-def threshold_grid(cfg: Config, t_nov: Sequence[float], t_qua: Sequence[float],
-                   seeds: int) -> tuple[jax.Array, Params, list[tuple[float, float]]]:
-    """Keys [P*S, 2] and batched Params [P*S] for every (t_nov, t_qua) pair and seed (pair-major), and the P pairs.
+def param_names(params: Params) -> list[str]:
+    """The dotted names of the leaves of `params` ("t_dist", "emitter.acquisition.t_nov", ...), what `grid` takes."""
+    return [jax.tree_util.keystr(path)[1:] for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
 
-    Every pair uses the same S seed keys, so settings are compared on the same seeds.
+
+def grid(cfg: Config, values: Mapping[str, Sequence[float]],
+         seeds: int) -> tuple[jax.Array, Params, list[tuple[float, ...]]]:
+    """Keys [P*S, 2] and batched Params [P*S] for every combination of `values` and seed (combination-major),
+    and the P combinations.
+
+    `values` maps a traced parameter's dotted name (`param_names(cfg.params())`, e.g. the paper's thresholds
+    "emitter.acquisition.t_nov" and "emitter.acquisition.t_qua" of "mqd-paper") to the values it takes; the
+    others keep the config's. Every combination uses the same S seed keys, so settings are compared on the same
+    seeds. Raises ValueError for an unknown name, an empty list, or a value the parameter's owner refuses.
     """
-    pairs = list(itertools.product(t_nov, t_qua))
-    if not pairs:
-        raise ValueError("the threshold grid is empty: give at least one t_nov and one t_qua")
-    for pair in pairs:  # the same checks as Config's
-        dataclasses.replace(cfg, t_nov=pair[0], t_qua=pair[1])
-    keys = jnp.tile(seed_keys(seeds), (len(pairs), 1))
-    column = lambda i: jnp.repeat(jnp.asarray([p[i] for p in pairs], jnp.float32), seeds)  # noqa: E731
-    params = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(pairs) * seeds,)), cfg.params())
-    return keys, params.replace(t_nov=column(0), t_qua=column(1)), pairs
+    base = cfg.params()
+    names = param_names(base)
+    unknown = [name for name in values if name not in names]
+    if unknown:
+        raise ValueError(f"grid: {cfg.algorithm_name} has no traced parameter {unknown[0]!r}; its parameters: "
+                         f"{', '.join(names)}")
+    combos = list(itertools.product(*values.values()))
+    if not combos:
+        raise ValueError("the grid is empty: give at least one value of every parameter")
+    leaves, structure = jax.tree.flatten(base)
+    columns = []
+    for name, leaf in zip(names, leaves, strict=True):
+        at = list(values).index(name) if name in values else None
+        column = [np.float32(leaf) if at is None else np.float32(combo[at]) for combo in combos]
+        columns.append(jnp.repeat(jnp.asarray(column, jnp.float32), seeds))
+    params = jax.tree.unflatten(structure, columns)
+    check_params(params, cfg)
+    return jnp.tile(seed_keys(seeds), (len(combos), 1)), params, combos
 
 
 def _shard(x: np.ndarray, sharding: NamedSharding) -> jax.Array:
@@ -96,7 +114,7 @@ def run_batch(
       cfg: static configuration, shared by every run.
       keys: [R, 2] one key per run (`seed_keys`).
       params: traced parameters: unbatched (every run uses them; default
-        `cfg.params()`) or with a leading axis [R] (`threshold_grid`).
+        `cfg.params()`) or with a leading axis [R] (`grid`).
       chunk: generations per compiled call (default: the whole run).
       on_chunk: called after each chunk with (generations done, that chunk's
         metrics, each [R, chunk]).

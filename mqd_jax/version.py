@@ -5,4 +5,4 @@ is it, and every results file records it (`mqd_jax.provenance`). A sweep reuses
 only batches written by this version (`mqd_jax.results`).
 """
 
-__version__ = "0.9.0"
+__version__ = "0.10.0"

@@ -1,0 +1,34 @@
+"""A run's traced parameters: the engine's `t_dist` and the emitter's own.
+
+`Params` is a pytree of float32 arrays, so one compiled run can be `jax.vmap`-ed
+over any of them (the way evosax separates `params` from its static settings).
+The engine reads `t_dist`; `emitter` is whatever `Emitter.default_params()`
+returns, a nested pytree for a composition (`ModelEmitter`'s holds its inner
+emitter's and its acquisition rule's), and each component checks its own part
+(`Emitter.check_params`). A component is handed the run's `Params` with `emitter`
+set to its own part: it reads `params.t_dist` and `params.emitter.<its names>`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+from flax import struct
+
+
+@struct.dataclass
+class Params:
+    """Traced parameters of a run.
+
+    Attributes:
+      t_dist: float32 scalar (or [R] in a sweep): the insertion distance threshold and coverage disk radius.
+      emitter: the emitter's traced parameters (`Emitter.default_params()`; () for one without).
+    """
+
+    t_dist: jax.Array
+    emitter: Any = ()
+
+    def part(self, emitter: Any) -> Params:
+        """These params with `emitter` as the emitter's part: what a wrapper hands a component it holds."""
+        return self.replace(emitter=emitter)
