@@ -62,7 +62,7 @@ def _options(given: Any) -> tuple[tuple[str, Any], ...]:
     if isinstance(given, Mapping):
         given = given.items()
     try:
-        pairs = tuple(sorted((str(k), v) for k, v in given))
+        pairs = tuple(sorted((str(k), v.item() if isinstance(v, np.generic) else v) for k, v in given))
     except (TypeError, ValueError):
         raise ValueError(f"Config.algorithm_options={given!r} is invalid: expected a dict of option: value") from None
     return pairs

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, Task, cli, registry
+from mqd_jax import Config, Task, cli, presets, registry
 
 FUSION_EMITTERS = "MQD_TESTS_FUSION_EMITTERS"  # set: this process keeps XLA's default (fusion) emitters
 
@@ -75,9 +75,16 @@ def optimized_jit():
 # Shared helpers, as fixtures: test modules do not import each other, and no test registers a task at import.
 
 def _tiny(**kw):
-    """A Config small enough for a unit test (16 candidates, 12 generations)."""
+    """A Config small enough for a unit test (16 candidates, 12 generations); keywords that are not Config
+    fields are the algorithm's options (`tiny(algorithm="mqd", warmup_samples=64)`), of which a preset gets those
+    it takes (one call serves "qd" and "mqd" alike)."""
+    fields = {f.name for f in dataclasses.fields(Config)}
     base = dict(population_size=16, max_generations=12, capacity=256, archive_capacity=64)
-    return Config(**{**base, **kw})
+    options = {k: v for k, v in kw.items() if k not in fields}
+    algorithm = kw.get("algorithm", Config.algorithm)
+    if isinstance(algorithm, str):
+        options = {k: v for k, v in options.items() if k in presets.options(algorithm)}
+    return Config(**{**base, **{k: v for k, v in kw.items() if k in fields}, "algorithm_options": options})
 
 
 @pytest.fixture(scope="session")
@@ -111,7 +118,7 @@ def tiny_flags():
 @pytest.fixture(scope="session")
 def tiny_mqd_flags():
     """Command-line flags of a tiny M-QD run (its model trains from the second generation)."""
-    return [*_TINY_FLAGS, "--warmup-samples", "8", "--num-batches", "2"]
+    return [*_TINY_FLAGS, "--algorithm-option", "warmup_samples=8", "num_batches=2"]
 
 
 @pytest.fixture

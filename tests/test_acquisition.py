@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from mqd_jax import Config, IsoLine, ModelEmitter, Steering, model, presets, run_mqd
+from mqd_jax import Config, IsoLine, ModelEmitter, Params, Steering, model, presets, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
 from mqd_jax.emitters import Evaluated
@@ -222,7 +222,8 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     np.testing.assert_allclose(got.novelty, np.sort(d, 1)[:, :3].mean(1), rtol=1e-6)
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     state = state.replace(evaluations=jnp.int32(emitter.warmup_samples))  # past warm-up: the rule chooses
-    proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task, Config().params(), 3)
+    proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task,
+                               Params(jnp.float32(0.02), emitter.default_params()), 3)
     kept = np.sqrt(((np.asarray(proposal.info["predicted_behaviors"])[:, None] - np.asarray(rep.behaviors[:4])[None])
                     ** 2).sum(-1)).min(1)
     np.testing.assert_allclose(proposal.info["predicted_distance"], kept, rtol=1e-6)
@@ -281,8 +282,8 @@ def test_greedy_diverse_by_hand():
     # Budgeted ranking has no imagined skills: both duplicates before 2.
     ranked = Budgeted(1).select(pool.replace(novelty=jnp.array([1.0, 0.99, 0.8, 0.0, 0.001]),
                                              improvement=jnp.array([-0.4, -0.4, -0.4, 0.4, -0.3])),
-                                rep, wanted, jnp.bool_(False), Config().params().replace(t_nov=jnp.float32(0.05)),
-                                5)[0]
+                                rep, wanted, jnp.bool_(False), Params(jnp.float32(0.02),
+                                                                      Budgeted(1, t_nov=0.05).default_params()), 5)[0]
     np.testing.assert_array_equal(ranked[:3], [0, 1, 2])
     # Optimism: a spread of 0.2 lifts 4 (0.001 from the skill) above t_dist, ahead of the improvers.
     rows = greedy_diverse(pool.replace(spread=jnp.array([0, 0, 0, 0, 0.2])), wanted, jnp.float32(0.05), 1.0, 5)
@@ -392,23 +393,24 @@ def test_opener_auc_by_brute_force():
 def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(tiny):
     cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5,
                steering_share=0.3)
-    assert presets.emitter(cfg) == ModelEmitter(
+    assert cfg.emitter == ModelEmitter(
         IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1), k=cfg.k,
-        hidden_size=cfg.hidden_size,
-        ensemble_size=2, batch_size=cfg.batch_size, num_batches=5, warmup_samples=48, anchoring="auto", anchor="parent",
-        fallback=Fallback(), steering=Steering(share=0.3))
-    assert presets.emitter(dataclasses.replace(cfg, wide_scale=1.0)).inner == IsoLine()  # version 0.8's
-    assert presets.emitter(dataclasses.replace(cfg, wide_scale=3.0)).inner == IsoLine(scales=(1.0, 3.0))
-    assert presets.emitter(dataclasses.replace(cfg, anchor="nearest")).anchor == "nearest"  # version 0.5's
-    assert presets.emitter(dataclasses.replace(cfg, steering_share=0.0)).steering is None  # version 0.4's "mqd"
-    assert presets.emitter(dataclasses.replace(cfg, quality_share=0.0)).acquisition == Diverse(
-        3, 0.5, parent_weight=1.0)  # 0.7's
-    assert presets.emitter(dataclasses.replace(cfg, parent_weight=0.0, quality_share=0.0)).acquisition == Diverse(
-        3, 0.5)  # 0.6's
+        hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, warmup_samples=48, anchoring="auto",
+        anchor="parent", fallback=Fallback(), steering=Steering(share=0.3))
+
+    def changed(**options):
+        return dataclasses.replace(cfg, algorithm_options={**cfg.options, **options}).emitter
+
+    assert changed(wide_scale=1.0).inner == IsoLine()  # version 0.8's
+    assert changed(wide_scale=3.0).inner == IsoLine(scales=(1.0, 3.0))
+    assert changed(anchor="nearest").anchor == "nearest"  # version 0.5's
+    assert changed(steering_share=0.0).steering is None  # version 0.4's "mqd"
+    assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
+    assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
     np.testing.assert_array_equal(m["evaluations"], pop)
-    warm = np.concatenate([[0], np.asarray(m["num_evaluations"])[:-1]]) < cfg.warmup_samples
+    warm = np.concatenate([[0], np.asarray(m["num_evaluations"])[:-1]]) < cfg.options["warmup_samples"]
     np.testing.assert_array_equal(m["discarded"], np.where(warm, 0, 2 * pop))
     share = np.asarray(m["model_share"])
     np.testing.assert_array_equal(share[warm], 1.0)  # warm-up: the inner emitter's candidates, all "the rule's"
@@ -423,7 +425,7 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
     emitter = ModelEmitter(IsoLine(), Diverse(2), num_batches=3, training_data="rollouts", rollout_buffer=8)
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     rep = Repertoire.empty(16, 3, 2, 4)
-    params = Config().params()
+    params = Params(jnp.float32(0.02), emitter.default_params())
     for step in range(2):  # two generations of 6 candidates, the last of each unusable
         actions = jnp.full((6, 3), step * 0.1) + jnp.arange(6.0)[:, None] * 0.01
         b, q, _ = linear_task.evaluate(actions, None)
@@ -444,47 +446,36 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
         ModelEmitter(IsoLine(), training_data="archive")
 
 
+def flat(cfg):
+    """`cfg` as a config dict of version 0.9, when every preset's settings were fields of the config."""
+    saved = cfg.to_dict()
+    options = saved.pop("algorithm_options")
+    return {**saved, **presets.options("mqd"), **presets.options("mqd-paper"), **options,
+            "adaptation_step_size": 0.1, "adaptation_steps": 10}
+
+
 def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor_at_the_nearest_skill():
     """... before 0.7 rank predicted openers by their distance alone, before 0.8 make no quality steps and
-    before 0.9 vary the pool at one scale."""
-    default = Config()
-    for algorithm, share, anchor, weight, quality, scale in (
-            ("mqd", 0.0, "nearest", 0.0, 0.0, 1.0),
-            ("qd", default.steering_share, default.anchor, default.parent_weight, default.quality_share,
-             default.wide_scale),
-            ("mqd-paper", default.steering_share, default.anchor, default.parent_weight, default.quality_share,
-             default.wide_scale)):
-        saved = Config(algorithm=algorithm).to_dict()
-        del saved["steering_share"], saved["anchor"], saved["parent_weight"], saved["quality_share"]  # 0.4's
-        del saved["wide_scale"]
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, steering_share=share, anchor=anchor,
-                                                 parent_weight=weight, quality_share=quality, wide_scale=scale)
-        saved = Config(algorithm=algorithm).to_dict()
-        del saved["anchor"], saved["parent_weight"], saved["quality_share"], saved["wide_scale"]  # version 0.5's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, anchor=anchor, parent_weight=weight,
-                                                 quality_share=quality, wide_scale=scale)
-        saved = Config(algorithm=algorithm).to_dict()
-        del saved["parent_weight"], saved["quality_share"], saved["wide_scale"]  # version 0.6's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, parent_weight=weight, quality_share=quality,
-                                                 wide_scale=scale)
-        saved = Config(algorithm=algorithm).to_dict()
-        del saved["quality_share"], saved["wide_scale"]  # version 0.7's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, quality_share=quality, wide_scale=scale)
-        saved = Config(algorithm=algorithm).to_dict()
-        del saved["wide_scale"]  # version 0.8's
-        assert Config.from_dict(saved) == Config(algorithm=algorithm, wide_scale=scale)
-    assert Config().steering_share == 0.25 and presets.emitter(Config(algorithm="mqd")).steering == Steering(0.25)
-    # The preset's rule reads the config's quality share.
-    assert presets.emitter(Config(algorithm="mqd")).acquisition.quality_share == 0.1
-    assert presets.emitter(Config(algorithm="mqd", quality_share=0.3)).acquisition.quality_share == 0.3
+    before 0.9 vary the pool at one scale; since 0.10 the preset's settings are its options."""
+    then = dict(steering_share=0.0, anchor="nearest", parent_weight=0.0, quality_share=0.0, wide_scale=1.0)
+    added = ["steering_share", "anchor", "parent_weight", "quality_share", "wide_scale"]  # in 0.5, 0.6, ... 0.9
+    for algorithm in ("mqd", "qd", "mqd-paper"):
+        for version, missing in enumerate(added):
+            saved = {k: v for k, v in flat(Config(algorithm=algorithm)).items() if k not in added[version:]}
+            old = {k: then[k] for k in added[version:]} if algorithm == "mqd" else {}
+            assert Config.from_dict(saved) == Config(algorithm=algorithm, algorithm_options=old), (algorithm, missing)
+    assert Config(algorithm="mqd").emitter.steering == Steering(0.25)
+    # The preset's rule reads its quality share.
+    assert Config(algorithm="mqd").emitter.acquisition.quality_share == 0.1
+    assert Config(algorithm="mqd", algorithm_options={"quality_share": 0.3}).emitter.acquisition.quality_share == 0.3
 
 
 def test_configs_saved_before_version_0_3_name_the_papers_filter():
-    old = {k: v for k, v in Config(algorithm="mqd-paper", pool_factor=4).to_dict().items()
-           if k not in ("ensemble_size", "optimism")}
-    assert Config.from_dict({**old, "algorithm": "mqd"}) == Config(algorithm="mqd-paper", pool_factor=4)
+    paper = Config(algorithm="mqd-paper", algorithm_options={"pool_factor": 4})
+    old = {k: v for k, v in flat(paper).items() if k not in ("ensemble_size", "optimism")}
+    assert Config.from_dict({**old, "algorithm": "mqd"}) == paper
     del old["pool_factor"]
-    assert Config.from_dict({**old, "algorithm": "mqd"}).pool_factor == 4  # the default then
+    assert Config.from_dict({**old, "algorithm": "mqd"}).options["pool_factor"] == 4  # the default then
 
 
 @pytest.mark.parametrize("exact", [True, False])

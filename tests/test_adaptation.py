@@ -5,15 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, adapt, init, model, registry, run_mqd
+from mqd_jax import Config, adapt, adaptation, init, model, registry, run_mqd
 from mqd_jax.adaptation import METHODS
 
 
 @pytest.fixture(scope="module")
 def linear_cfg(linear_task):
     # Goals whose nearest skill is 0.02-0.1 away, well inside the linear task's reach.
-    return Config(task=linear_task, algorithm="mqd", warmup_samples=10, t_dist=1e-4, learning_rate=1e-2,
-                  num_batches=1000, adaptation_steps=5, adaptation_step_size=0.1)
+    return Config(task=linear_task, algorithm="mqd", t_dist=1e-4,
+                  algorithm_options=dict(warmup_samples=10, learning_rate=1e-2, num_batches=1000))
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +27,7 @@ def linear_state(linear_cfg, linear_task):
     rep = rep.replace(actions=rep.actions.at[:n].set(actions), behaviors=rep.behaviors.at[:n].set(b),
                       qualities=rep.qualities.at[:n].set(q), valid=jnp.arange(rep.capacity) < n, count=jnp.int32(n))
     trained, _ = model.train(state.emitter.model, jax.random.PRNGKey(2), rep, linear_task, jnp.float32(1e-2),
-                             linear_cfg.batch_size, linear_cfg.num_batches)
+                             linear_cfg.emitter.batch_size, linear_cfg.emitter.num_batches)
     return state.replace(repertoire=rep, emitter=state.emitter.replace(model=trained))
 
 
@@ -54,8 +54,7 @@ def test_linear_method_contracts_the_error_exactly_on_a_linear_task(linear_state
     goals = goals_near(linear_state)
     start = adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "nearest").errors
     for steps in (1, 3, 5):
-        cfg = dataclasses.replace(linear_cfg, adaptation_steps=steps)
-        out = adapt(linear_state, goals, jax.random.PRNGKey(0), cfg, "linear")
+        out = adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "linear", steps=steps)
         np.testing.assert_allclose(out.errors, 0.9 ** steps * np.asarray(start), rtol=2e-3, atol=1e-6)
         np.testing.assert_array_equal(out.steps, steps)
         np.testing.assert_array_equal(out.evaluations, steps)
@@ -63,12 +62,12 @@ def test_linear_method_contracts_the_error_exactly_on_a_linear_task(linear_state
 
 @pytest.mark.parametrize("method", ["linear", "model"])
 def test_full_steps_reach_the_goal_and_stop(linear_state, method, linear_cfg, linear_task):
-    cfg = dataclasses.replace(linear_cfg, t_dist=0.005, adaptation_step_size=1.0, adaptation_steps=10)
+    t_dist = 0.005
     goals = goals_near(linear_state)
-    out = adapt(linear_state, goals, jax.random.PRNGKey(0), cfg, method)
-    assert np.all(np.asarray(out.errors) < cfg.t_dist)
+    out = adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, method, step_size=1.0, steps=10, t_dist=t_dist)
+    assert np.all(np.asarray(out.errors) < t_dist)
     # Stopping rule: a step only while the error is >= t_dist; exact J needs one, the model a few.
-    far = np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0), cfg, "nearest").errors) >= cfg.t_dist
+    far = np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "nearest").errors) >= t_dist
     assert far.sum() > 20
     steps = np.asarray(out.steps)
     np.testing.assert_array_equal(steps[~far], 0)
@@ -80,8 +79,7 @@ def test_full_steps_reach_the_goal_and_stop(linear_state, method, linear_cfg, li
 def test_model_method_follows_the_linear_contraction_with_small_steps(linear_state, linear_cfg):
     goals = goals_near(linear_state)
     start = np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "nearest").errors)
-    errors = [np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0),
-                               dataclasses.replace(linear_cfg, adaptation_steps=s), "model").errors)
+    errors = [np.asarray(adapt(linear_state, goals, jax.random.PRNGKey(0), linear_cfg, "model", steps=s).errors)
               for s in (1, 2, 3, 4, 5)]
     last = start
     for s, e in enumerate(errors, 1):
@@ -122,7 +120,7 @@ def test_far_goals_give_finite_results_within_bounds(obstacle_run):
         a = np.asarray(out.actions)
         assert np.all((a >= low) & (a <= high))
         assert np.all(np.asarray(out.errors) <= np.asarray(nearest.errors))  # the best iterate is kept
-        assert np.all(np.asarray(out.steps) <= cfg.adaptation_steps)
+        assert np.all(np.asarray(out.steps) <= adaptation.STEPS)
         b, _, _ = task.evaluate(out.actions, None)
         np.testing.assert_allclose(out.behaviors, b, atol=1e-6)
 
@@ -136,7 +134,7 @@ def test_bad_calls_are_refused_before_tracing(obstacle_run):
         adapt(state, jnp.zeros((3, 3)), key, cfg, "linear")
     with pytest.raises(ValueError, match="repertoire is empty"):
         adapt(init(key, cfg), jnp.zeros((3, 2)), key, cfg, "linear")
-    qd_cfg = dataclasses.replace(cfg, algorithm="qd")
+    qd_cfg = dataclasses.replace(cfg, algorithm="qd", algorithm_options={})
     qd_state, _ = run_mqd(key, qd_cfg)
     with pytest.raises(ValueError, match="needs a run whose emitter is a ModelEmitter"):
         adapt(qd_state, jnp.zeros((3, 2)), key, qd_cfg, "model")

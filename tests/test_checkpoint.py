@@ -9,8 +9,8 @@ from flax import serialization
 
 from mqd_jax import Config, checkpoint, run_mqd
 
-CFG = Config(task="obstacle2d", algorithm="mqd", warmup_samples=64, num_batches=20, population_size=16,
-             max_generations=12, capacity=256, archive_capacity=64)
+CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),
+             population_size=16, max_generations=12, capacity=256, archive_capacity=64)
 KEY = jax.random.PRNGKey(3)
 
 
@@ -61,8 +61,9 @@ def test_mismatched_checkpoints_are_refused(tmp_path, uninterrupted):
     path = str(tmp_path / "run.ckpt")
     state, metrics = uninterrupted
     checkpoint.save(path, state, metrics, CFG, KEY)
-    with pytest.raises(ValueError, match=r"another config \(t_nov: saved 0.04, now 0.05\)"):
-        checkpoint.load(path, dataclasses.replace(CFG, t_nov=0.05), KEY)
+    with pytest.raises(ValueError, match=r"another config \(algorithm_options: saved .*'pool_factor': 8.*, now "
+                                         r".*'pool_factor': 4"):
+        checkpoint.load(path, dataclasses.replace(CFG, algorithm_options={**CFG.options, "pool_factor": 4}), KEY)
     with pytest.raises(ValueError, match=r"another config \(task: saved 'obstacle2d', now 'object2d'\)"):
         checkpoint.load(path, dataclasses.replace(CFG, task="object2d"), KEY)
     with pytest.raises(ValueError, match="started from another key"):
@@ -90,7 +91,9 @@ def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.load(str(path), CFG, KEY)
 
 
-PAPER = dataclasses.replace(CFG, algorithm="mqd-paper", pool_factor=4)  # before version 0.3 the default was 4
+# before version 0.3 the default pool was 4
+PAPER = dataclasses.replace(CFG, algorithm="mqd-paper", algorithm_options=dict(warmup_samples=64, num_batches=20,
+                                                                               pool_factor=4))
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +105,9 @@ def _as_format_4(body):
     """A format-5 checkpoint body of the paper's filter as format 4 wrote it: the preset named "mqd", no
     `ensemble_size` or `optimism` in the config; one network without a member axis; no `rollouts`,
     `fallback` or `anchor_errors` in the model emitter's state."""
-    config = {k: v for k, v in body["config"].items() if k not in ("ensemble_size", "optimism")}
+    flat = {**{k: v for k, v in body["config"].items() if k != "algorithm_options"},
+            **body["config"]["algorithm_options"]}  # before version 0.10 the preset's settings were fields
+    config = {k: v for k, v in flat.items() if k not in ("ensemble_size", "optimism")}
     config.update(algorithm="mqd")
     emitter = {k: v for k, v in body["state"]["emitter"].items() if k not in ("rollouts", "fallback", "anchor_errors")}
     model = dict(emitter["model"])

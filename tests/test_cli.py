@@ -24,7 +24,7 @@ def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
 
 def test_mqd_run_mqd_writes_strict_json_with_null_for_untrained_generations(tmp_path, capsys):
     cli.main(["run", "--algorithm", "mqd", "--generations", "4", "--population", "8", "--capacity", "64",
-              "--warmup-samples", "30", "--num-batches", "5", "--out", str(tmp_path)])
+              "--algorithm-option", "warmup_samples=30", "num_batches=5", "--out", str(tmp_path)])
     text = (tmp_path / "metrics.json").read_text()
     assert "NaN" not in text
     metrics = json.loads(text)["metrics"]
@@ -46,8 +46,8 @@ def test_mqd_run_resumes_its_checkpoint_and_refuses_another_config(tmp_path, cap
     assert not any(line.startswith("generation") for line in out.splitlines())
     assert json.loads((tmp_path / "metrics.json").read_text())["metrics"] == first["metrics"]
     with pytest.raises(SystemExit):
-        cli.main([*argv[:-2], "--t-nov", "0.1", "--out", str(tmp_path), "--resume"])
-    assert "another run (" in (err := capsys.readouterr().err) and "t_nov: saved 0.04, now 0.1" in err
+        cli.main([*argv[:-2], "--t-dist", "0.01", "--out", str(tmp_path), "--resume"])
+    assert "another run (" in (err := capsys.readouterr().err) and "t_dist: saved 0.02, now 0.01" in err
 
 
 def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
@@ -56,28 +56,33 @@ def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
         cli.main(["run", "--generations", "3", "--population", "10", "--capacity", "10", "--out", str(tmp_path)])
 
 
-def test_every_config_field_has_a_flag_and_presets_apply():
+def test_every_config_field_has_a_flag_options_are_named_and_presets_apply():
     parser = argparse.ArgumentParser()
     cli._add_config_flags(parser)
-    args = parser.parse_args(["--preset", "paper-robot", "--t-nov", "0.05", "--budgeted", "--algorithm", "mqd-paper",
-                              "--population", "50"])
+    args = parser.parse_args(["--preset", "paper-robot", "--algorithm-option", "t_nov=0.05", "budgeted=True",
+                              "--algorithm", "mqd-paper", "--population", "50", "-O", "anchor_free=x"])
+    assert args.algorithm_options == [("t_nov", 0.05), ("budgeted", True), ("anchor_free", "x")]
+    args.algorithm_options.pop()
     cfg = cli._config(args)
-    assert cfg == Config.paper_robot(t_nov=0.05, budgeted=True, algorithm="mqd-paper", population_size=50)
+    assert cfg == Config.paper_robot(algorithm_options={"t_nov": 0.05, "budgeted": True}, algorithm="mqd-paper",
+                                     population_size=50)
+    assert cfg.options["hidden_size"] == 64  # Table II's robot column
     assert cli._config(parser.parse_args([])) == Config()
     assert cli._config(parser.parse_args([]), defaults={"max_generations": 100}) == Config(max_generations=100)
-    # `mqd sweep`'s preset "auto" is the paper's column for each task.
+    # `mqd sweep`'s preset "auto" is the paper's column for each task; each algorithm takes the options it has.
     auto = argparse.ArgumentParser()
     cli._add_config_flags(auto, skip=cli._PER_TASK, preset="auto")
-    args = auto.parse_args(["--t-nov", "0.05"])
-    assert cli._config(args, task="place", algorithm="qd") == Config.paper_robot(task="place", t_nov=0.05)
-    assert cli._config(args, task="object2d", algorithm="qd") == Config.paper_2d(task="object2d", t_nov=0.05)
+    args = auto.parse_args(["--t-dist", "0.01", "-O", "t_nov=0.05"])
+    assert cli._config(args, task="place", algorithm="qd") == Config.paper_robot(task="place", t_dist=0.01)
+    assert cli._config(args, task="object2d", algorithm="mqd-paper") == Config.paper_2d(
+        task="object2d", t_dist=0.01, algorithm="mqd-paper", algorithm_options={"t_nov": 0.05})
     with pytest.raises(SystemExit):
         auto.parse_args(["--task", "place"])  # per task: --tasks
     for field in dataclasses.fields(Config):
+        if field.name == "algorithm_options":  # --algorithm-option NAME=VALUE, above
+            continue
         value = getattr(Config(), field.name)
-        flag = "--" + field.name.replace("_", "-")
-        argv = [flag] if value is True else ["--no-" + flag[2:]] if value is False else [flag, str(value)]
-        assert getattr(parser.parse_args(argv), field.name) == value
+        assert getattr(parser.parse_args(["--" + field.name.replace("_", "-"), str(value)]), field.name) == value
 
 
 def test_mqd_run_rejects_bad_config(tmp_path, capsys):

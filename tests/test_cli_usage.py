@@ -26,7 +26,7 @@ def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_pat
 
 def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch, tiny_flags):
     argv = ["run", *tiny_flags, "--generations", "4", "--chunk", "2", "--algorithm", "mqd-paper",
-            "--warmup-samples", "8", "--num-batches", "2", "--out", str(tmp_path)]
+            "--algorithm-option", "warmup_samples=8", "num_batches=2", "--out", str(tmp_path)]
     chunk = cli._Progress.chunk
 
     def interrupt_after_first(self, done, m):
@@ -48,7 +48,8 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
     last = [line for line in out.splitlines() if line.startswith("generation")][-1]
     assert last.startswith("generation    4/4") and f"discarded {sum(metrics['discarded']):6d}" in last
     _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="mqd-paper", max_generations=4, population_size=8,
-                                                     capacity=64, warmup_samples=8, num_batches=2))
+                                                     capacity=64,
+                                                     algorithm_options=dict(warmup_samples=8, num_batches=2)))
     np.testing.assert_array_equal(metrics["coverage"], whole["coverage"])
 
 
@@ -77,14 +78,18 @@ def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
     with pytest.raises(SystemExit):
         cli.main(["sweep", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "--tasks TASK [TASK ...] tasks to sweep" in text and "--budgeted, --no-budgeted M-QD:" in text
+    assert "--tasks TASK [TASK ...] tasks to sweep" in text and "--algorithm-option NAME=VALUE" in text
+    assert "mqd-paper: t_nov=0.04, t_qua=0.0, budgeted=False" in text  # every preset's options, with defaults
 
 
 def test_numpy_scalars_in_a_config_are_the_python_values_they_hold():
-    cfg = Config(population_size=np.int64(10), t_dist=np.float32(0.02), budgeted=np.bool_(False))
-    assert cfg == Config(population_size=10, t_dist=float(np.float32(0.02)))
-    assert type(cfg.population_size) is int and type(cfg.t_dist) is float and type(cfg.budgeted) is bool
-    assert hash(cfg) == hash(Config(population_size=10, t_dist=float(np.float32(0.02))))
+    cfg = Config(population_size=np.int64(10), t_dist=np.float32(0.02), algorithm="mqd-paper",
+                 algorithm_options={"budgeted": np.bool_(True), "pool_factor": np.int64(4)})
+    same = Config(population_size=10, t_dist=float(np.float32(0.02)), algorithm="mqd-paper",
+                  algorithm_options={"budgeted": True, "pool_factor": 4})
+    assert cfg == same and hash(cfg) == hash(same)
+    assert type(cfg.population_size) is int and type(cfg.t_dist) is float
+    assert type(cfg.options["budgeted"]) is bool and type(cfg.options["pool_factor"]) is int
 
 
 def test_tell_takes_nested_lists():

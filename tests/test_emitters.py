@@ -9,7 +9,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Budgeted, Config, Emitter, IsoLine, ModelEmitter, Proposal, Threshold, Uniform, presets, run_mqd
+from mqd_jax import (
+    Budgeted,
+    Config,
+    Emitter,
+    IsoLine,
+    ModelEmitter,
+    Params,
+    Proposal,
+    Threshold,
+    Uniform,
+    presets,
+    run_mqd,
+)
 from mqd_jax.acquisition import Judged
 from mqd_jax.emitters import action_bounds
 from mqd_jax.registry import make
@@ -25,23 +37,25 @@ def test_importing_mqd_jax_and_its_modules_leaves_the_tasks_out():
 
 
 def test_presets_are_these_compositions():
-    cfg = Config(algorithm="mqd-paper", k=4, hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5,
-                 max_generations=2)
-    assert presets.emitter(dataclasses.replace(cfg, algorithm="random")) == Uniform()
-    assert presets.emitter(dataclasses.replace(cfg, algorithm="qd")) == IsoLine()
-    model_settings = dict(k=4, hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5)
-    assert presets.emitter(cfg) == ModelEmitter(IsoLine(), Threshold(), **model_settings)
-    assert presets.emitter(dataclasses.replace(cfg, budgeted=True, pool_factor=3)) == ModelEmitter(
-        IsoLine(), Budgeted(3), **model_settings)
+    model_settings = dict(hidden_size=8, batch_size=4, num_batches=3, warmup_samples=5)
+    cfg = Config(algorithm="mqd-paper", k=4, algorithm_options=model_settings, max_generations=2)
+    assert Config(algorithm="random").emitter == presets.random() == Uniform()
+    assert Config(algorithm="qd").emitter == presets.qd() == IsoLine()
+    assert cfg.emitter == presets.mqd_paper(k=4, **model_settings) == ModelEmitter(IsoLine(), Threshold(), k=4,
+                                                                                   **model_settings)
+    budgeted = Config(algorithm="mqd-paper", k=4, algorithm_options={**model_settings, "budgeted": True,
+                                                                     "pool_factor": 3}, max_generations=2)
+    assert budgeted.emitter == ModelEmitter(IsoLine(), Budgeted(3), k=4, **model_settings)
     emitter = ModelEmitter(Uniform(), Budgeted(2))
-    assert presets.emitter(dataclasses.replace(cfg, algorithm=emitter)) is emitter
+    assert dataclasses.replace(cfg, algorithm=emitter, algorithm_options={}).emitter is emitter
 
 
 def test_a_composed_model_emitter_runs_bit_identical_to_the_mqd_paper_preset(tiny):
     preset = tiny(algorithm="mqd-paper", warmup_samples=48, num_batches=10, max_generations=6, t_nov=0.1, t_qua=0.1)
-    composed = dataclasses.replace(preset, algorithm=ModelEmitter(
-        IsoLine(), Threshold(), k=preset.k, hidden_size=preset.hidden_size, batch_size=preset.batch_size,
-        num_batches=preset.num_batches, warmup_samples=preset.warmup_samples))
+    o = preset.options
+    composed = dataclasses.replace(preset, algorithm_options={}, algorithm=ModelEmitter(
+        IsoLine(), Threshold(t_nov=0.1, t_qua=0.1), k=preset.k, hidden_size=o["hidden_size"],
+        batch_size=o["batch_size"], num_batches=o["num_batches"], warmup_samples=o["warmup_samples"]))
     (s1, m1), (s2, m2) = (run_mqd(jax.random.PRNGKey(1), c) for c in (preset, composed))
     assert set(m1) == set(m2) == set(METRICS) | {"discarded", "model_loss", "prediction_error", "opener_auc"}
     for name in m1:
@@ -60,7 +74,7 @@ def test_acquisition_rules_respect_the_inner_emitters_rollout_mask_by_hand():
     novelty = jnp.array([0.5, 0.01, 0.9, 0.02, 0.3, 0.0])
     improvement = jnp.array([0.0, 0.5, 0.0, -0.1, 0.0, 0.2])
     wanted = jnp.array([True, True, False, True, True, True])
-    params = Config().params().replace(t_nov=jnp.float32(0.1), t_qua=jnp.float32(0.1))
+    params = Params(jnp.float32(0.02), Threshold(t_nov=0.1, t_qua=0.1).default_params())
     judged = Judged(jnp.zeros((6, 2)), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), novelty, improvement)
     rep = Repertoire.empty(4, 1, 2, 4)
     rows, rollout, discarded = Threshold().select(judged, rep, wanted, jnp.bool_(False), params, 6)

@@ -10,6 +10,8 @@ import hashlib
 import io
 import json
 import shutil
+import struct
+import zipfile
 
 import numpy as np
 import pytest
@@ -18,7 +20,7 @@ from mqd_jax import cli, folders, results
 
 RUN_FLAGS = ["--generations", "2", "--population", "8", "--capacity", "64", "--algorithm", "random"]
 SWEEP = ["sweep", "--tasks", "obstacle2d", "--algorithms", "mqd", "qd", "--seeds", "2", "--generations", "2",
-         "--population", "8", "--capacity", "64", "--warmup-samples", "8", "--num-batches", "2"]
+         "--population", "8", "--capacity", "64", "--algorithm-option", "warmup_samples=8", "num_batches=2"]
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +38,16 @@ def truncate(path):
 
 
 def flip(path):
+    """One bit: in JSON and msgpack the middle byte (JSON stays text, a digit or a letter changes); in an npz the
+    middle byte of its largest member's compressed data (elsewhere a bit may change no array)."""
     data = bytearray(path.read_bytes())
-    data[len(data) // 2] ^= 0x01  # one bit: JSON stays text, a digit or a letter changes
+    at = len(data) // 2
+    if path.suffix == ".npz":
+        with zipfile.ZipFile(path) as z:
+            member = max(z.infolist(), key=lambda info: info.compress_size)
+        name_length, extra_length = struct.unpack("<HH", data[member.header_offset + 26:member.header_offset + 30])
+        at = member.header_offset + 30 + name_length + extra_length + member.compress_size // 2
+    data[at] ^= 0x01
     path.write_bytes(bytes(data))
 
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Validity, run_mqd
+from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Params, Validity, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.imagination import survivors
 from mqd_jax.repertoire import Repertoire
@@ -40,13 +40,14 @@ def test_survivors_by_hand():
 
 
 def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force(linear_task, tiny):
-    params = tiny(task="obstacle2d", t_dist=T_DIST, k=K).params()
     start = jax.random.uniform(jax.random.PRNGKey(3), (12, 3), minval=-1.0, maxval=1.0)
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), start, linear_task, jnp.ones(12, bool))
     emitter = _Perfect(IsoLine(), k=K, generations=2)
+    params = Params(jnp.float32(T_DIST), emitter.default_params())
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     key, num = jax.random.PRNGKey(7), 10
     proposal = emitter.propose(key, state, rep, linear_task, params, num)
+    params = params.part(params.emitter.inner)  # IsoLine's, as the emitter hands them to it
 
     # Two QD generations by hand on the true outcomes; a candidate survives if it is alive after its generation
     # and the next generation does not write its slot.
@@ -68,12 +69,12 @@ def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force
 
 
 def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_task, tiny):
-    params = tiny(task="obstacle2d").params()
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), jnp.zeros((1, 3)), linear_task, jnp.ones(1, bool))
     emitter = _Perfect(IsoLine(), k=K, generations=3, warmup_samples=100)
+    params = Params(jnp.float32(0.02), emitter.default_params())
     key = jax.random.PRNGKey(5)
     proposal = emitter.propose(key, emitter.init(key, linear_task), rep, linear_task, params, 6)
-    first = IsoLine().propose(jax.random.split(key, 3)[0], (), rep, linear_task, params, 6)
+    first = IsoLine().propose(jax.random.split(key, 3)[0], (), rep, linear_task, params.part(params.emitter.inner), 6)
     np.testing.assert_allclose(proposal.actions, first.actions, rtol=1e-5, atol=1e-6)
     assert bool(proposal.rollout.all())
 

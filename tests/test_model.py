@@ -102,7 +102,8 @@ def run(cfg):
 @pytest.mark.fusion_emitters
 def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
     qd = tiny(task="obstacle2d", algorithm="qd")
-    mqd = dataclasses.replace(qd, algorithm="mqd-paper", t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
+    options = dict(t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
+    mqd = dataclasses.replace(qd, algorithm="mqd-paper", algorithm_options=options)
     (s_qd, m_qd), (s_mqd, m_mqd) = run(qd), run(mqd)
     assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.emitter.model.steps) == 20 * 9
     for field in ("repertoire", "archive", "coverage", "key", "generation", "num_evaluations"):
@@ -114,7 +115,8 @@ def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
 
 
 def check_masked_rows_left_no_trace(cfg, state, m):
-    pop, pool = cfg.population_size, cfg.population_size * (cfg.pool_factor if cfg.budgeted else 1)
+    options = cfg.options
+    pop, pool = cfg.population_size, cfg.population_size * (options["pool_factor"] if options["budgeted"] else 1)
     evaluations, discarded = np.asarray(m["evaluations"]), np.asarray(m["discarded"])
     outcomes = m["added"] + m["replaced"] + m["rejected"] + m["dropped_full"] + m["invalid"]
     np.testing.assert_array_equal(outcomes, evaluations)
@@ -146,27 +148,28 @@ def test_warm_up_runs_as_qd_and_does_not_train(tiny):
     cfg = tiny(task="obstacle2d", algorithm="mqd-paper", warmup_samples=70, num_batches=10, t_nov=1e3, t_qua=1e3)
     state, m = run(cfg)
     before = np.concatenate([[0], np.asarray(m["num_evaluations"])[:-1]])
-    warm = before < cfg.warmup_samples
+    warm = before < cfg.options["warmup_samples"]
     assert warm.sum() == 5  # 5 x 16 = 80 >= 70 evaluations
     np.testing.assert_array_equal(np.asarray(m["discarded"])[warm], 0)
     np.testing.assert_array_equal(np.asarray(m["evaluations"])[warm], cfg.population_size)
     np.testing.assert_array_equal(np.asarray(m["discarded"])[~warm], cfg.population_size)
     # Training starts at the end of the generation that completes warm-up, and then every generation.
     trained = np.isfinite(np.asarray(m["model_loss"]))
-    np.testing.assert_array_equal(trained, np.asarray(m["num_evaluations"]) >= cfg.warmup_samples)
-    assert int(state.emitter.model.steps) == cfg.num_batches * trained.sum()
+    np.testing.assert_array_equal(trained, np.asarray(m["num_evaluations"]) >= cfg.options["warmup_samples"])
+    assert int(state.emitter.model.steps) == cfg.options["num_batches"] * trained.sum()
     assert np.all(np.isfinite(np.asarray(m["prediction_error"])[warm]))
     assert np.all(np.isnan(np.asarray(m["prediction_error"])[~warm]))  # nothing evaluated
 
 
-@pytest.mark.parametrize("kw, field", [
-    (dict(algorithm="qd", budgeted=True), "budgeted"),
-    (dict(algorithm="mqd-paper", budgeted=1), "budgeted"),
-    (dict(algorithm="mqd", warmup_samples=1200, max_generations=12, population_size=100), "warmup_samples"),
-    (dict(pool_factor=0), "pool_factor"),
+@pytest.mark.parametrize("kw, match", [
+    (dict(algorithm="qd", algorithm_options={"budgeted": True}), "'qd' takes no option 'budgeted'"),
+    (dict(algorithm="mqd-paper", algorithm_options={"budgeted": 1}), "budgeted=1 is invalid"),
+    (dict(algorithm="mqd", algorithm_options={"warmup_samples": 1200}, max_generations=12, population_size=100),
+     "ModelEmitter.warmup_samples=1200 is invalid for this run"),
+    (dict(algorithm="mqd-paper", algorithm_options={"pool_factor": 0, "budgeted": True}), "Budgeted.pool_factor=0"),
 ])
-def test_model_config_is_validated(kw, field):
-    with pytest.raises(ValueError, match=f"Config.{field}="):
+def test_model_config_is_validated(kw, match):
+    with pytest.raises(ValueError, match=match):
         Config(**kw)
 
 

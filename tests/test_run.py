@@ -55,7 +55,7 @@ def test_same_key_same_result_and_vmap_over_keys(tiny, assert_same):
 @pytest.mark.fusion_emitters
 def test_traced_params_match_static_config_and_vmap(tiny, assert_same):
     cfg = tiny()
-    other = dataclasses.replace(cfg, iso_sigma=0.1, t_dist=0.015)
+    other = dataclasses.replace(cfg, algorithm_options={"iso_sigma": 0.1}, t_dist=0.015)
     _, want = run_mqd(jax.random.PRNGKey(0), other)
     params = jax.tree.map(lambda a, b: jnp.stack([a, b]), cfg.params(), other.params())
     _, got = jax.vmap(lambda p: run_mqd(jax.random.PRNGKey(0), cfg, p))(params)

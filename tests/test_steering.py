@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import mqd_jax
 from mqd_jax import Config, Diverse, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Threshold, model, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.repertoire import Repertoire
@@ -96,12 +97,12 @@ def test_a_mutation_step_is_an_iso_mutation_of_the_drawn_skill_without_the_model
     def no_model(actions):
         raise AssertionError("a mutation step asks the model for no Jacobian")
 
-    params = Config().params()
-    children, parents = Steering(step="mutation").steer(jax.random.PRNGKey(4), rep, no_model, task, params, 4000)
+    steering = Steering(step="mutation", iso_sigma=0.03)
+    children, parents = steering.steer(jax.random.PRNGKey(4), rep, no_model, task, Params(), 4000)
     np.testing.assert_array_equal(parents, 0)  # the one skill
     change = np.asarray(children) - np.asarray(CLOSE[0], np.float32)
     np.testing.assert_allclose(change.mean(0), 0.0, atol=0.02)
-    np.testing.assert_allclose(change.std(0), float(params.iso_sigma) * 20.0, rtol=0.05)
+    np.testing.assert_allclose(change.std(0), 0.03 * 20.0, rtol=0.05)
 
 
 def test_a_quality_step_climbs_the_gradient_without_moving_the_linearized_behavior(linear_task):
@@ -190,12 +191,13 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     """With no variation (sigmas 0) every child is its parent's action: IsoLine's and a mutation step's alike, so
     the parents a ModelEmitter's proposal names (IsoLine's first parents, the steered rows' steering parents,
     kept with the rows the rule chose) hold exactly the proposed actions."""
-    emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), hidden_size=8, anchoring="always",
-                           steering=Steering(share=0.5, step="mutation"))
+    emitter = ModelEmitter(IsoLine(iso_sigma=0.0, line_sigma=0.0), Diverse(pool_factor=4), hidden_size=8,
+                           anchoring="always", steering=Steering(share=0.5, step="mutation", iso_sigma=0.0))
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     rep = skills_at(linear_task, [[0.1 * i, -0.05 * i, 0.02 * i * i] for i in range(8)])
-    params = Config(iso_sigma=0.0, line_sigma=0.0).params()
-    pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, linear_task, params, 48)
+    params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
+    inner = params.part(params.emitter.inner)
+    pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, linear_task, inner, 48)
     steered_pool, steered = emitter._steered(jax.random.PRNGKey(2), state, pool, rep, linear_task, params, 12,
                                              jnp.bool_(False))
     assert steered.sum() == 24 and (np.asarray(steered_pool.parents) >= 0).all()
@@ -205,7 +207,7 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     assert (parents >= 0).all() and len(set(parents)) > 1
     np.testing.assert_array_equal(proposal.actions, np.asarray(rep.actions)[parents])
     # Before the first skill there is no parent: IsoLine's uniform candidates name -1.
-    first = IsoLine().propose(jax.random.PRNGKey(2), (), Repertoire.empty(16, 3, 2, 4), linear_task, params, 5)
+    first = IsoLine().propose(jax.random.PRNGKey(2), (), Repertoire.empty(16, 3, 2, 4), linear_task, inner, 5)
     np.testing.assert_array_equal(first.parents, -1)
 
 

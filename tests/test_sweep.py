@@ -11,12 +11,12 @@ import jax
 import numpy as np
 import pytest
 
-from mqd_jax import Config, cli, registry, results
+from mqd_jax import Config, cli, registry, results, sweep
 from mqd_jax.stats import mann_whitney
-from mqd_jax.sweep import run_batch, seed_keys, threshold_grid
+from mqd_jax.sweep import run_batch, seed_keys
 
-TINY = dict(max_generations=6, population_size=16, capacity=128, archive_capacity=128, warmup_samples=40,
-            num_batches=20)
+TINY = dict(max_generations=6, population_size=16, capacity=128, archive_capacity=128)
+MODEL = dict(warmup_samples=40, num_batches=20)
 
 
 def test_chunks_do_not_change_a_batch_and_runs_keep_their_key():
@@ -34,22 +34,29 @@ def test_chunks_do_not_change_a_batch_and_runs_keep_their_key():
 
 
 def test_threshold_grid_pairs_every_setting_with_the_same_seeds():
-    cfg = Config(algorithm="mqd-paper", **TINY)
-    keys, params, pairs = threshold_grid(cfg, [0.0, 2.0], [0.0, 2.0], seeds=2)
+    cfg = Config(algorithm="mqd-paper", algorithm_options=MODEL, **TINY)
+    assert sweep.param_names(cfg.params()) == ["t_dist", "emitter.learning_rate", "emitter.inner.iso_sigma",
+                                               "emitter.inner.line_sigma", "emitter.acquisition.t_nov",
+                                               "emitter.acquisition.t_qua"]
+    t_nov, t_qua = "emitter.acquisition.t_nov", "emitter.acquisition.t_qua"
+    keys, params, pairs = sweep.grid(cfg, {t_nov: [0.0, 2.0], t_qua: [0.0, 2.0]}, seeds=2)
     assert pairs == [(0.0, 0.0), (0.0, 2.0), (2.0, 0.0), (2.0, 2.0)]
     np.testing.assert_array_equal(keys, np.tile(seed_keys(2), (4, 1)))
-    np.testing.assert_array_equal(params.t_nov, [0, 0, 0, 0, 2, 2, 2, 2])
-    np.testing.assert_array_equal(params.t_qua, [0, 0, 2, 2, 0, 0, 2, 2])
+    np.testing.assert_array_equal(params.emitter.acquisition.t_nov, [0, 0, 0, 0, 2, 2, 2, 2])
+    np.testing.assert_array_equal(params.emitter.acquisition.t_qua, [0, 0, 2, 2, 0, 0, 2, 2])
     np.testing.assert_array_equal(params.t_dist, np.full(8, cfg.t_dist, np.float32))
+    np.testing.assert_array_equal(params.emitter.inner.iso_sigma, np.full(8, 0.02, np.float32))
     _, m = run_batch(cfg, keys, params)
     discarded = m["discarded"].sum(1)
     # t_nov 0 lets every candidate through (a predicted novelty, a mean distance, is > 0); t_nov 2 and t_qua 2
     # (beyond the unit box's diagonal and the quality range) turn down every candidate after warm-up.
     assert (discarded[:4] == 0).all()
-    after_warmup = (m["num_evaluations"][6:, :-1] >= cfg.warmup_samples).sum(1)
+    after_warmup = (m["num_evaluations"][6:, :-1] >= cfg.options["warmup_samples"]).sum(1)
     assert (discarded[6:] == after_warmup * cfg.population_size).all() and (discarded[6:] > 0).all()
-    with pytest.raises(ValueError, match=r"Config\.t_nov=-1"):
-        threshold_grid(cfg, [-1.0], [0.0], seeds=2)
+    with pytest.raises(ValueError, match=r"Threshold\.params\.t_nov=-1"):
+        sweep.grid(cfg, {t_nov: [-1.0]}, seeds=2)
+    with pytest.raises(ValueError, match="mqd-paper has no traced parameter 't_nov'; its parameters: t_dist, "):
+        sweep.grid(cfg, {"t_nov": [0.1]}, seeds=2)
 
 
 def test_bad_batches_are_refused():
@@ -119,17 +126,17 @@ def test_two_processes_with_jax_distributed_gather_the_single_process_result():
 def swept(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep")
     argv = ["sweep", "--tasks", "obstacle2d", "--algorithms", "mqd", "qd", "--seeds", "3", "--generations", "6",
-            "--population", "16", "--capacity", "128", "--archive-capacity", "128", "--warmup-samples", "40",
-            "--num-batches", "20", "--chunk", "3", "--out", str(out)]
+            "--population", "16", "--capacity", "128", "--archive-capacity", "128", "--algorithm-option",
+            "warmup_samples=40", "num_batches=20", "--chunk", "3", "--out", str(out)]
     cli.main(argv)
     return out, argv
 
 
 def test_mqd_sweep_writes_every_seed_and_generation_and_table_one(swept, capsys):
     out, argv = swept
-    cfg = Config(algorithm="mqd", **TINY)
+    cfg = Config(algorithm="mqd", algorithm_options=MODEL, **TINY)
     saved = json.loads((out / "obstacle2d_mqd.json").read_text())
-    assert saved["config"]["t_nov"] == 0.04 and saved["config"]["max_generations"] == 6
+    assert saved["config"]["algorithm_options"]["warmup_samples"] == 40 and saved["config"]["max_generations"] == 6
     _, want = run_batch(cfg, seed_keys(3))
     for name in ("coverage", "repertoire_size", "num_evaluations", "discarded", "mean_quality"):
         np.testing.assert_array_equal(np.array(saved["metrics"][name], float), want[name])
@@ -202,7 +209,7 @@ def test_layouts_come_from_the_tasks():
 def test_results_round_trip_a_batch_of_states(swept):
     out, _ = swept
     cfg, keys, states = results.load_states(str(out), "obstacle2d")
-    assert cfg == Config(algorithm="mqd", **TINY)
+    assert cfg == Config(algorithm="mqd", algorithm_options=MODEL, **TINY)
     np.testing.assert_array_equal(keys, seed_keys(3))
     rep = np.load(out / "obstacle2d_mqd.npz")
     np.testing.assert_array_equal(states.repertoire.count, rep["count"])

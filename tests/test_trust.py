@@ -18,7 +18,7 @@ import pytest
 import mqd_jax
 from mqd_jax import Config, adapt, checkpoint, cli, diagnostics, folders, registry, results, run_mqd
 from mqd_jax.config import check_params
-from mqd_jax.sweep import run_batch, seed_keys
+from mqd_jax.sweep import grid, param_names, run_batch, seed_keys
 
 
 def digest(folder):
@@ -116,38 +116,46 @@ def test_tables_refuse_a_folder_whose_batches_were_mixed_by_hand(tmp_path):
         results.load_runs(str(tmp_path))
 
 
-def test_batches_need_agree_only_on_the_model_fields_both_presets_read(tmp_path):
-    """A QD batch sits beside M-QD batches of any model settings (QD reads none); two model presets must agree on
-    the fields both read (hidden size), not on those one of them ignores (ensemble size, t_nov)."""
-    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2", "--warmup-samples", "8")
+def test_batches_need_agree_only_on_the_options_both_presets_take(tmp_path):
+    """A QD batch sits beside M-QD batches of any model settings (QD takes none); two model presets must agree on
+    the options both take (hidden size), not on those one of them has alone (ensemble size, t_nov)."""
+    sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
     qd = folders.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
     checkpoint.save(str(tmp_path / "obstacle2d_mqd.msgpack"), {}, {}, Config(), jax.random.PRNGKey(0))
 
-    def add(algorithm, **changes):
-        saved = {**qd, "config": {**qd["config"], "algorithm": algorithm, **changes}}
-        folders.write_json(str(tmp_path / f"obstacle2d_{algorithm}.json"), saved)
+    def add(algorithm, **options):
+        config = Config.from_dict(qd["config"])
+        made = Config(task=config.task, algorithm=algorithm, algorithm_options=options, max_generations=3,
+                      population_size=8, capacity=64)
+        folders.write_json(str(tmp_path / f"obstacle2d_{algorithm}.json"), {**qd, "config": made.to_dict()})
         shutil.copy(tmp_path / "obstacle2d_qd.npz", tmp_path / f"obstacle2d_{algorithm}.npz")
 
-    add("mqd", ensemble_size=4, hidden_size=64, t_nov=0.5)
-    add("mqd-paper", ensemble_size=1, hidden_size=64, t_nov=0.04)
+    add("mqd", ensemble_size=4, hidden_size=64, warmup_samples=8)
+    add("mqd-paper", hidden_size=64, t_nov=0.5, warmup_samples=8)
     assert list(results.load_runs(str(tmp_path))["obstacle2d"]) == ["mqd", "mqd-paper", "qd"]
-    add("mqd-paper", hidden_size=32)
-    with pytest.raises(ValueError, match=r"cannot be compared.*_mqd differs \(hidden_size: saved 64, now 32\)"):
+    add("mqd-paper", hidden_size=32, warmup_samples=8)
+    with pytest.raises(ValueError, match=r"cannot be compared.*_mqd differs \(algorithm_options.hidden_size: saved "
+                                         r"64, now 32\)"):
+        results.load_runs(str(tmp_path))
+    add("mqd-paper", hidden_size=64, warmup_samples=8, iso_sigma=0.03)  # QD takes iso_sigma too
+    with pytest.raises(ValueError, match=r"cannot be compared.*algorithm_options.iso_sigma: saved 0.02, now 0.03"):
         results.load_runs(str(tmp_path))
 
 
 def test_adaptation_of_replaced_mqd_runs_is_left_out_and_tables_are_remade(tmp_path, capsys):
-    mqd = ["--algorithms", "mqd", "--seeds", "2", "--warmup-samples", "8", "--num-batches", "2"]
+    mqd = ["--algorithms", "mqd", "--seeds", "2", "--algorithm-option", "warmup_samples=8", "num_batches=2"]
     sweep(tmp_path, *mqd)
     cli.main(["adapt", str(tmp_path), "--goals", "3"])
     assert (tmp_path / "adaptation.md").exists()
     entry = json.loads((tmp_path / "adaptation.json").read_text())["obstacle2d"]
-    assert entry["config"]["t_nov"] == 0.04 and entry["provenance"]["versions"]["jax"] == jax.__version__
-    sweep(tmp_path, *mqd, "--t-nov", "0.01", "--overwrite")  # other M-QD runs: the adaptation results are stale
+    assert entry["config"]["algorithm_options"]["optimism"] == 1.0
+    assert entry["provenance"]["versions"]["jax"] == jax.__version__
+    sweep(tmp_path, *mqd, "optimism=0.5", "--overwrite")  # other M-QD runs: the adaptation results are stale
     out = capsys.readouterr().out
     assert "left out the adaptation results of obstacle2d" in out
     assert not (tmp_path / "adaptation.md").exists() and not (tmp_path / "fig3_adaptation_error.png").exists()
-    assert "0.01" not in json.dumps(json.loads((tmp_path / "adaptation.json").read_text()))  # kept, not used
+    kept = json.loads((tmp_path / "adaptation.json").read_text())["obstacle2d"]  # kept, not used
+    assert kept["config"]["algorithm_options"]["optimism"] == 1.0
     found, stale = results.adaptation(str(tmp_path))
     assert found == {} and stale == ["obstacle2d"]
 
@@ -199,18 +207,22 @@ def test_leftover_temporary_files_of_a_killed_writer_are_removed(tmp_path, capsy
 
 # Case 4: runtime parameters, states and checkpoints are checked.
 
-@pytest.mark.parametrize(("field", "value", "match"), [
-    ("t_dist", np.nan, "Params.t_dist=nan"), ("iso_sigma", np.nan, "Params.iso_sigma=nan"),
-    ("t_dist", 0.05, "<= Config.t_dist"), ("learning_rate", 0.0, "Params.learning_rate=0.0"),
-    ("t_qua", np.inf, "Params.t_qua=inf"), ("t_nov", -0.1, "Params.t_nov=-0.1")])
-def test_invalid_concrete_params_are_refused_naming_the_field(field, value, match):
-    cfg = Config(max_generations=2, population_size=8, capacity=64)
-    params = cfg.params().replace(**{field: np.float32(value)})
+@pytest.mark.parametrize(("algorithm", "name", "value", "match"), [
+    ("qd", "t_dist", np.nan, "Params.t_dist=nan"), ("qd", "t_dist", 0.05, "Params.t_dist=0.05.* and <= 0.02"),
+    ("qd", "emitter.iso_sigma", np.nan, "IsoLine.params.iso_sigma=nan"),
+    ("mqd-paper", "emitter.learning_rate", 0.0, "ModelEmitter.params.learning_rate=0.0"),
+    ("mqd-paper", "emitter.acquisition.t_qua", np.inf, "Threshold.params.t_qua=inf"),
+    ("mqd-paper", "emitter.acquisition.t_nov", -0.1, "Threshold.params.t_nov=-0.1")])
+def test_invalid_concrete_params_are_refused_naming_the_part_and_the_field(algorithm, name, value, match):
+    cfg = Config(algorithm=algorithm, max_generations=2, population_size=8, capacity=64,
+                 algorithm_options={} if algorithm == "qd" else {"warmup_samples": 8})
+    leaves, structure = jax.tree.flatten(cfg.params())
+    at = param_names(cfg.params()).index(name)
+    params = jax.tree.unflatten(structure, [np.float32(value) if i == at else x for i, x in enumerate(leaves)])
     with pytest.raises(ValueError, match=match):
         run_mqd(jax.random.PRNGKey(0), cfg, params)
-    batched = jax.tree.map(lambda x: np.stack([x, x]), cfg.params())
     with pytest.raises(ValueError, match=match):  # one bad member of a batch is enough
-        run_batch(cfg, seed_keys(2), batched.replace(**{field: np.asarray([getattr(cfg, field), value], np.float32)}))
+        grid(cfg, {name: [float(leaves[at]), value]}, seeds=1)
 
 
 def test_params_check_skips_traced_values_and_accepts_the_configs_own():
@@ -249,8 +261,7 @@ def test_unreliable_runs_warn_once_with_counts(changes, match):
     import plugin_tasks
 
     cfg = Config(task=plugin_tasks.make_reach(**changes), algorithm="mqd", max_generations=3, population_size=8,
-                 capacity=64, warmup_samples=8,
-                 num_batches=2)
+                 capacity=64, algorithm_options=dict(warmup_samples=8, num_batches=2))
     with pytest.warns(diagnostics.RunWarning, match=match) as caught:
         _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     caught = [w for w in caught if w.category is diagnostics.RunWarning]

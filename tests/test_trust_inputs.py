@@ -127,7 +127,7 @@ def test_a_batch_of_another_version_is_not_reused(tmp_path, capsys, refused):
 # 4. --overwrite removes only what mqd-jax wrote, tables and figures included, and lists it.
 
 def test_overwrite_removes_only_the_files_mqd_jax_wrote_and_lists_them(tmp_path, capsys):
-    cli.main(sweep_argv(tmp_path, "--warmup-samples", "8"))
+    cli.main(sweep_argv(tmp_path))
     (tmp_path / "lab_notes.json").write_text('{"mine": 1}')
     np.savez(tmp_path / "raw_data.npz", x=np.arange(3))
     (tmp_path / "fig2_mine.png").write_bytes(b"my figure")  # named like a figure, but not written by mqd-jax

@@ -37,7 +37,7 @@ def test_registered_user_task_runs_and_stores_true_behaviors(registered):
 def test_mqd_on_a_user_task_learns_its_quality_range():
     task = Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0))
     cfg = Config(task=task, algorithm="mqd", max_generations=12, population_size=32, capacity=512,
-                 warmup_samples=128, learning_rate=1e-2, num_batches=100)
+                 algorithm_options=dict(warmup_samples=128, learning_rate=1e-2, num_batches=100))
     state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (256, 2), minval=-3.14, maxval=3.14)
     _, pred_q = model.predict(state.emitter.model, actions, task)

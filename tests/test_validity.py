@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, IsoLine, ModelEmitter, Steering, Task, Validity, run_mqd
+from mqd_jax import IsoLine, ModelEmitter, Params, Steering, Task, Validity, run_mqd
 from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, ranking
 from mqd_jax.model_emitter import auc
 from mqd_jax.pursuit import Fallback
@@ -80,13 +80,14 @@ def test_the_rules_put_likely_unusable_candidates_after_the_others_by_hand():
     validity = jnp.array([0.2, 0.9, 0.9, 0.1])
     pool = Judged(jnp.zeros((4, 2)), jnp.zeros(4), jnp.zeros(4), novelty, jnp.zeros(4), novelty, improvement,
                   novelty[:, None], validity)
-    params = dataclasses.replace(Config(), t_nov=0.04, t_qua=0.15).params()
-    rows, _, _ = Budgeted(1).select(pool, None, wanted, jnp.bool_(False), params, 4)
+    budgeted, threshold = Budgeted(1, t_nov=0.04), Threshold(t_nov=0.04, t_qua=0.15)
+    rows, _, _ = budgeted.select(pool, None, wanted, jnp.bool_(False), Params(0.02, budgeted.default_params()), 4)
     np.testing.assert_array_equal(rows, [1, 0, 2, 3])
-    _, rollout, discarded = Threshold().select(pool, None, wanted, jnp.bool_(False), params, 4)
+    _, rollout, discarded = threshold.select(pool, None, wanted, jnp.bool_(False),
+                                             Params(0.02, threshold.default_params()), 4)
     np.testing.assert_array_equal(rollout, [False, True, False, False])  # 3 passes t_qua but is judged unusable
     assert int(discarded) == 3
-    _, rollout, _ = Threshold().select(pool, None, wanted, jnp.bool_(True), params, 4)
+    _, rollout, _ = threshold.select(pool, None, wanted, jnp.bool_(True), Params(0.02, threshold.default_params()), 4)
     np.testing.assert_array_equal(rollout, True)  # warm-up: everything
 
 
