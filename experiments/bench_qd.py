@@ -52,8 +52,9 @@ def bench_pyribs(cfg: Config, seed: int = 0) -> dict:
     low, high = np.asarray(task.action_low), np.asarray(task.action_high)
     archive = ProximityArchive(solution_dim=task.action_dim, measure_dim=task.behavior_dim, k_neighbors=cfg.k,
                                novelty_threshold=cfg.t_dist, local_competition=True, seed=seed)
-    emitter = IsoLineEmitter(archive, x0=(low + high) / 2, iso_sigma=cfg.iso_sigma * float(np.mean(high - low)),
-                             line_sigma=cfg.line_sigma, bounds=list(zip(low, high, strict=True)),
+    iso, line = cfg.options["iso_sigma"], cfg.options["line_sigma"]
+    emitter = IsoLineEmitter(archive, x0=(low + high) / 2, iso_sigma=iso * float(np.mean(high - low)),
+                             line_sigma=line, bounds=list(zip(low, high, strict=True)),
                              batch_size=cfg.population_size, seed=seed)
     scheduler = Scheduler(archive, [emitter])
     eval_s = 0.0
@@ -91,7 +92,8 @@ def bench_qdax(cfg: Config, generations: int, seed: int = 0) -> dict:
             rep, key = carry
             key, k1, k2, k3 = jax.random.split(key, 4)
             x1, x2 = rep.select(k1, pop).genotypes, rep.select(k2, pop).genotypes
-            x = isoline_variation(x1, x2, k3, cfg.iso_sigma * (high - low), cfg.line_sigma, low, high)
+            iso, line = cfg.options["iso_sigma"], cfg.options["line_sigma"]
+            x = isoline_variation(x1, x2, k3, iso * (high - low), line, low, high)
             b, q, _ = task.evaluate(x, None)
             return (rep.add(x, b, q), key), None
 

@@ -1,8 +1,8 @@
 """Time of one jitted generation of several configs, as ratios to QD's, measured in turns.
 
-    python experiments/generation_ratio.py [--task obstacle2d] [--configs mqd mqd:ensemble_size=1 ...]
+    python experiments/generation_ratio.py [--task obstacle2d] [--configs mqd mqd:ensemble_size=4 ...]
 
-Each config ("NAME" or "NAME:FIELD=VALUE,FIELD=VALUE", fields of `Config`; NAME a
+Each config ("NAME" or "NAME:OPTION=VALUE,OPTION=VALUE", options of the preset; NAME a
 preset or a composition of `sample_efficiency.py`)
 grows a repertoire for `--grow` generations (Table II's settings for the task,
 `Config.paper`: the robotic column on the KUKA tasks; by default its number of
@@ -35,10 +35,9 @@ def main() -> None:
     args = parser.parse_args()
     grow = jax.jit(run_generations, static_argnums=(1, 3))
     timed = {}
-    base = Config.paper(args.task)
-    generations = base.max_generations if args.grow is None else args.grow
+    generations = Config.paper(args.task).max_generations if args.grow is None else args.grow
     for spec in ["qd", *args.configs]:
-        cfg = configured(spec, base)
+        cfg = configured(spec, args.task)
         params = cfg.params()
         state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, generations)
         step = jax.jit(lambda s, cfg=cfg, params=params: generation(s, cfg, params))

@@ -35,7 +35,7 @@ import numpy as np
 import report
 from sample_efficiency import register_experiment_tasks
 
-from mqd_jax import Config, model, presets, run_mqd, selection
+from mqd_jax import Config, model, run_mqd, selection
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.archive import Archive
 from mqd_jax.run import get_task
@@ -87,7 +87,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
     number of skills."""
     cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations)
     state, _ = run_mqd(jax.random.PRNGKey(seed), cfg)
-    task, emitter, params, rep = get_task(cfg), presets.emitter(cfg), cfg.params(), state.repertoire
+    task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
     n, filled = int(rep.count), min(int(state.archive.total), state.archive.qualities.shape[0])
     skills = np.asarray(rep.behaviors[:n])
     arch = state.archive
@@ -101,7 +101,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
     distances, openers, labelled = [], [], []
     for p in range(pools):
         k = jax.random.fold_in(key, p)
-        pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params, POOL)
+        pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params.part(params.emitter.inner), POOL)
         # IsoLine's first parents, drawn as its propose draws them.
         parents = np.asarray(selection.sample_parents(jax.random.split(k, 3)[1], rep.novelty, rep.valid, 2 * POOL))
         parents = parents[:POOL]

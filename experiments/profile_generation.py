@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import report
 
-from mqd_jax import Config, ModelEmitter, coverage, init, model, presets, repertoire
+from mqd_jax import Config, ModelEmitter, coverage, init, model, repertoire
 from mqd_jax.run import ask, generation, get_task, run_generations
 
 
@@ -45,11 +45,11 @@ def main() -> None:
             s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, repertoire.NUM_NEAR, chunk=32)),
         "coverage stamp": jax.jit(lambda s: coverage.stamp(s.coverage, b, ok.astype(jnp.int32), params.t_dist)),
     }
-    emitter = presets.emitter(cfg)
+    emitter = cfg.emitter
     if isinstance(emitter, ModelEmitter):
         stages[f"model training ({emitter.num_batches} Adam steps)"] = jax.jit(
-            lambda s: model.train(s.emitter.model, key, s.repertoire, task, params.learning_rate, emitter.batch_size,
-                                  emitter.num_batches))
+            lambda s: model.train(s.emitter.model, key, s.repertoire, task, params.emitter.learning_rate,
+                                  emitter.batch_size, emitter.num_batches))
     print(f"{args.task}, {args.algorithm}, repertoire of {int(state.repertoire.count)} skills after {args.grow} "
           f"generations (capacity {cfg.capacity}); {report.machine()}; median of {args.repeats} calls.\n")
     print("| stage | ms |\n|---|---|")

@@ -5,9 +5,9 @@
     python experiments/sample_efficiency.py --sweep DIR [DIR=SUFFIX ...] [--run COMPOSITION ...] [--out ...]
     python experiments/sample_efficiency.py --merge JSON[=TASK,...] [JSON ...] [--tasks ...] [--out ...]
 
-A composition is a name of `COMPOSITIONS` or "NAME:FIELD=VALUE,..." with fields of `Config`
-changed before NAME composes the config (`mqd:parent_weight=2`; refused before anything runs
-where NAME sets or ignores the field, or the value is invalid). Every composition runs `--seeds`
+A composition is a name of `COMPOSITIONS` (the presets and the oracle) or "NAME:OPTION=VALUE,..."
+with options of the preset (`mqd:pool_factor=16`; refused before anything runs where the preset
+has no such option, or the value is invalid). Every composition runs `--seeds`
 seeds (`sweep.seed_keys`, the seeds `mqd sweep` uses) with the task's Table II settings, vmapped
 in one batch (`sweep.run_batch`). `--sweep DIR ...` reads the
 presets `mqd sweep` wrote to those folders instead of running (the robot tasks, whose runs take long);
@@ -38,12 +38,12 @@ against rollouts per task (`--figure`).
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import json
 import os
 import time
 import warnings
-from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -53,20 +53,13 @@ import report
 
 from mqd_jax import (
     Config,
-    Fallback,
-    Imagination,
-    IsoLine,
     ModelEmitter,
-    Steering,
-    Validity,
     presets,
     registry,
     results,
     stats,
 )
 from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.acquisition import Budgeted, Diverse
-from mqd_jax.config import Params
 from mqd_jax.model_emitter import ModelEmitterState
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.sweep import run_batch, seed_keys
@@ -151,180 +144,45 @@ def register_experiment_tasks(tasks: list[str]) -> None:
             registry.register(name, EXPERIMENT_TASKS[name])
 
 
-def _rebuilt(cls: type, **changes: Any) -> Callable[[Config], Any]:
-    """The "mqd" preset's emitter of a config rebuilt as `cls` (ModelEmitter or a subclass), some fields changed."""
-    def build(cfg: Config) -> Any:
-        mqd = presets.emitter(dataclasses.replace(cfg, algorithm="mqd"))
-        return cls(**{f.name: getattr(mqd, f.name) for f in dataclasses.fields(ModelEmitter)} | changes)
-
-    return build
-
-
-def _replaced(**changes: Any) -> Callable[[Config], Any]:
-    """The "mqd" preset's emitter of a config, with some fields changed."""
-    return _rebuilt(ModelEmitter, **changes)
-
-
-def _rule_replaced(**changes: Any) -> Callable[[Config], Any]:
-    """The "mqd" preset's emitter of a config, with some fields of its acquisition rule changed."""
-    def build(cfg: Config) -> Any:
-        rule = presets.emitter(dataclasses.replace(cfg, algorithm="mqd")).acquisition
-        return _replaced(acquisition=dataclasses.replace(rule, **changes))(cfg)
-
-    return build
-
-
-def _with(build: Callable[[Config], Any], **changes: Any) -> Callable[[Config], Config]:
-    """A composition run with some of the config's traced settings changed (the learning rate, say)."""
-    return lambda cfg: dataclasses.replace(cfg, algorithm=build(cfg), **changes)
-
-
-@dataclasses.dataclass(frozen=True)
-class VoronoiIsoLine(IsoLine):
-    """QD whose last `share` of children are `Steering(step="mutation")`'s (Voronoi parents, iso mutation): the
-    model-free reference for the steering compositions."""
-
-    share: float = 0.25
-
-    def propose(self, key: jax.Array, state: Any, repertoire: Any, task: Task, params: Any, num: int) -> Any:
-        proposal = super().propose(key, state, repertoire, task, params, num)
-        count = round(self.share * num)
-        children, parents = Steering(step="mutation").steer(jax.random.fold_in(key, 2), repertoire, None, task,
-                                                             params, count)
-        bred = repertoire.count > 0
-        tail = jnp.where(bred, children, proposal.actions[num - count:])
-        parents = jnp.where(bred, parents, proposal.parents[num - count:])
-        return proposal.replace(actions=proposal.actions.at[num - count:].set(tail),
-                                parents=proposal.parents.at[num - count:].set(parents))
-
-
-@dataclasses.dataclass(frozen=True)
-class MixedSteering(Steering):
-    """Steering whose first half of children take the model's Jacobian step and the rest an iso mutation."""
-
-    def steer(self, key: jax.Array, repertoire: Any, jacobian: Any, task: Task, params: Any, num: int,
-              quality_gradient: Any = None) -> tuple[jax.Array, jax.Array]:
-        half = num // 2
-        k_jacobian, k_mutation = jax.random.split(key)
-        aimed = dataclasses.replace(self, step="jacobian")
-        mutated = dataclasses.replace(self, step="mutation")
-        parts = (Steering.steer(aimed, k_jacobian, repertoire, jacobian, task, params, half, quality_gradient),
-                 Steering.steer(mutated, k_mutation, repertoire, jacobian, task, params, num - half))
-        return jax.tree.map(lambda *x: jnp.concatenate(x), *parts)
-
-
-# Cheaper training schedules: half the Adam steps; a quarter of the steps on 4x wider batches.
-_HALF_TRAINING = _replaced(num_batches=250)
-_WIDE_BATCHES = _replaced(batch_size=64, num_batches=125)
-
-# name -> the config's algorithm (a preset's name or an emitter built from the config), or a whole config. A
-# composition built on the "mqd" preset takes the preset's settings of today but those it changes; one that stands
-# for an earlier version's "mqd" changes every setting that version lacked.
-COMPOSITIONS: dict[str, Callable[[Config], Any]] = {
-    "qd": lambda cfg: "qd",
-    "mqd-paper": lambda cfg: "mqd-paper",
-    "mqd-paper-budgeted": lambda cfg: ModelEmitter(IsoLine(), Budgeted(4), k=cfg.k, hidden_size=cfg.hidden_size,
-                                                   warmup_samples=cfg.warmup_samples),
-    "mqd": lambda cfg: "mqd",
-    "mqd-no-fallback": _replaced(fallback=None),
-    "mqd-not-anchored": _replaced(anchoring="none"),
-    "mqd-always-anchored": _replaced(anchoring="always"),
-    "mqd-nearest-anchor": _with(lambda cfg: "mqd", anchor="nearest", parent_weight=0.0, quality_share=0.0,
-                                wide_scale=1.0),  # 0.5's
-    "mqd-one-network": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=1)),
-    "mqd-four-networks": lambda cfg: _replaced()(dataclasses.replace(cfg, ensemble_size=4)),
-    **{f"mqd-hidden-{h}": lambda cfg, h=h: _replaced()(dataclasses.replace(cfg, hidden_size=h)) for h in (64, 128)},
-    "mqd-ranked": lambda cfg: _replaced(acquisition=Budgeted(cfg.pool_factor))(cfg),
-    "mqd-novelty-5": lambda cfg: _replaced(acquisition=Diverse(cfg.pool_factor, cfg.optimism, neighbours=5))(cfg),
-    # "mqd" of version 0.7; "mqd-distance-ranked" is 0.6's.
-    "mqd-parent-novelty": _with(lambda cfg: "mqd", parent_weight=1.0, quality_share=0.0, wide_scale=1.0),
-    "mqd-distance-ranked": _with(lambda cfg: "mqd", parent_weight=0.0, quality_share=0.0, wide_scale=1.0),
-    "mqd-rollout-buffer": _replaced(training_data="rollouts"),
-    "mqd-steered": _replaced(steering=Steering()),
-    # "mqd" since version 0.5 (anchored at the parent since 0.6, as every composition built on the preset).
-    "mqd-steered-quarter": _replaced(steering=Steering(share=0.25)),
-    **{f"mqd-quality-{q:g}": _replaced(steering=Steering(share=0.25, quality=q)) for q in (0.5, 1.0, 2.0)},
-    "mqd-unsteered": _with(lambda cfg: "mqd", steering_share=0.0, anchor="nearest", parent_weight=0.0,
-                           quality_share=0.0, wide_scale=1.0),  # 0.4's
-    "mqd-steered-novelty": _replaced(steering=Steering(parents="novelty")),
-    "mqd-steered-novelty-quarter": _replaced(steering=Steering(share=0.25, parents="novelty")),
-    "mqd-steered-far": _replaced(steering=Steering(step_low=2.0, step_high=6.0)),
-    "mqd-voronoi-mutation-quarter": _replaced(steering=Steering(share=0.25, step="mutation")),
-    "mqd-steered-mixed-quarter": _replaced(steering=MixedSteering(share=0.25)),
-    "mqd-steered-mixed-half": _replaced(steering=MixedSteering(share=0.5)),
-    # "mqd" of version 0.8 is mqd-quality-share-0.1 (the quality-share rules at one scale, as measured).
-    **{f"mqd-quality-share-{s:g}": _with(lambda cfg: "mqd", quality_share=s, wide_scale=1.0) for s in (0.1, 0.2, 0.3)},
-    **{f"mqd-quality-share-0.2-margin-{m:g}": _rule_replaced(quality_share=0.2, quality_margin=m)
-       for m in (0.25, 0.5, 1.0)},
-    "mqd-two-scales": _replaced(inner=IsoLine(scales=(1.0, 0.25))),
-    "mqd-two-scales-half": _replaced(inner=IsoLine(scales=(1.0, 0.5))),
-    "mqd-two-scales-wide": _replaced(inner=IsoLine(scales=(1.0, 2.0))),  # "mqd" since version 0.9
-    "mqd-one-scale": _with(lambda cfg: "mqd", wide_scale=1.0),  # 0.8's
-    "mqd-voronoi-mutation-half": _replaced(steering=Steering(share=0.5, step="mutation")),
-    "qd-voronoi-quarter": lambda cfg: VoronoiIsoLine(),
-    "mqd-steered-pursuit": _replaced(steering=Steering(pursuit=Fallback())),
-    "mqd-steered-pursuit-80": _replaced(steering=Steering(share=0.8, pursuit=Fallback())),
-    "mqd-short-training": _replaced(batch_size=64, num_batches=100),
-    "mqd-half-training": _HALF_TRAINING,
-    "mqd-wide-batches": _WIDE_BATCHES,
-    "mqd-wide-batches-lr2": _with(_WIDE_BATCHES, learning_rate=2e-3),
-    "mqd-wide-batches-lr4": _with(_WIDE_BATCHES, learning_rate=4e-3),
-    "mqd-half-training-lr2": _with(_HALF_TRAINING, learning_rate=2e-3),
-    "mqd-lr2": _with(lambda cfg: "mqd", learning_rate=2e-3),
-    "mqd-pool-16": _with(lambda cfg: "mqd", pool_factor=16),
-    "mqd-validity": _replaced(validity=Validity()),
-    # Imagined generations draw their own pools: no steering (the preset's since version 0.5).
-    "mqd-imagination": _rebuilt(Imagination, fallback=None, steering=None, generations=3),
-    "mqd-imagination-1": _rebuilt(Imagination, fallback=None, steering=None, generations=1),
-    "oracle": _rebuilt(Oracle, anchoring="none", fallback=None, ensemble_size=1, num_batches=1),
-}
+# The compositions the report's tables still show: the presets and the oracle. The compositions that stood for
+# earlier versions of "mqd" and the ablations measured on the way (docs/results.md's history) are in the git
+# history: commit 7e79d7f holds this script with all of them.
+COMPOSITIONS = ("qd", "mqd-paper", "mqd", "random", "oracle")
 FRACTIONS = (0.25, 0.5, 1.0)
 
 
-def _value(field: str, text: str, like: Any) -> Any:
-    """`text` as a value of `Config.field`, of the type of `like` (its value in the base config)."""
-    if isinstance(like, bool):  # bool("False") is True
-        if text.lower() not in ("true", "false"):
-            raise SystemExit(f"{field}={text!r}: expected true or false")
-        return text.lower() == "true"
-    try:
-        return type(like)(text)
-    except ValueError:
-        raise SystemExit(f"{field}={text!r}: expected a {type(like).__name__}") from None
+def warmup(cfg: Config) -> int:
+    """The rollouts before a config's model is used (0 without a model)."""
+    return getattr(cfg.emitter, "warmup_samples", 0)
 
 
-def configured(spec: str, cfg: Config) -> Config:
-    """The config a composition spec runs: "NAME" (a key of `COMPOSITIONS`) or "NAME:FIELD=VALUE,FIELD=VALUE"
-    (fields of `Config`, set in `cfg` before NAME composes it). Refused (SystemExit) for an unknown name or field,
-    a value of the wrong type, an invalid config, or a field the composition sets or ignores."""
+def configured(spec: str, task: str, generations: int | None = None) -> Config:
+    """The config a composition spec runs on `task` with Table II's settings: "NAME" (of `COMPOSITIONS`) or
+    "NAME:OPTION=VALUE,..." (options of the preset, `mqd_jax.presets`; the oracle takes "mqd"'s). Refused
+    (SystemExit) for an unknown name or option and for an invalid value."""
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:
         raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
-    fields = {f.name for f in dataclasses.fields(Config)}
-    asked = {}
+    preset = "mqd" if name == "oracle" else name
+    options = {}
     for change in filter(None, changes.split(",")):
-        field, equals, text = change.partition("=")
-        if field not in fields or not equals:
-            raise SystemExit(f"{spec!r}: {change!r} is not FIELD=VALUE with a field of Config")
-        asked[field] = _value(field, text, getattr(cfg, field))
-    base = {field: getattr(cfg, field) for field in asked}
-    try:  # the changes made under the composition's preset, which they may need (budgeted: "mqd-paper")
-        preset = COMPOSITIONS[name](cfg)
-        preset = preset.algorithm if isinstance(preset, Config) else preset
-        cfg = dataclasses.replace(cfg, **asked, algorithm=preset if isinstance(preset, str) else cfg.algorithm)
-        composed = COMPOSITIONS[name](cfg)
-        cfg = composed if isinstance(composed, Config) else dataclasses.replace(cfg, algorithm=composed)
+        option, equals, text = change.partition("=")
+        if not equals:
+            raise SystemExit(f"{spec!r}: {change!r} is not OPTION=VALUE")
+        try:
+            options[option] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            options[option] = text
+    length = {} if generations is None else {"max_generations": generations}
+    try:
+        cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **length)
+        if name == "oracle":  # the preset's acquisition fed the true outcomes
+            mqd = cfg.emitter
+            oracle = Oracle(**{f.name: getattr(mqd, f.name) for f in dataclasses.fields(ModelEmitter)}
+                            | dict(anchoring="none", fallback=None, ensemble_size=1, num_batches=1))
+            cfg = dataclasses.replace(cfg, algorithm=oracle, algorithm_options={})
     except ValueError as error:
         raise SystemExit(f"{spec!r}: {error}") from None
-    # A field the composition overwrites in the config, or a model field that builds the emitter (not a traced
-    # parameter) whose change leaves the composition's emitter as it was (a composition that fixes it).
-    structural = presets.MODEL_FIELDS - {f.name for f in dataclasses.fields(Params)}
-    emitter = presets.emitter(cfg)
-    unchanged = {field for field in asked.keys() & structural if asked[field] != base[field]
-                 and emitter == presets.emitter(configured(name, dataclasses.replace(cfg, **{field: base[field]})))}
-    overridden = [field for field, value in asked.items() if getattr(cfg, field) != value or field in unchanged]
-    if overridden:
-        raise SystemExit(f"{spec!r}: {name} sets or ignores {', '.join(overridden)}")
     return cfg
 
 
@@ -333,7 +191,7 @@ SKILLS = "final_skills"
 
 
 def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str, Any]:
-    cfg = configured(spec, Config.paper(task, **({} if generations is None else {"max_generations": generations})))
+    cfg = configured(spec, task, generations)
     compiled = {}
     start = time.perf_counter()
     states, metrics = run_batch(cfg, seed_keys(seeds),
@@ -341,7 +199,7 @@ def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str,
     ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
     print(f"{task} {spec}: {time.perf_counter() - start:.0f} s", flush=True)
     skills = [jax.tree.map(lambda x, i=i: x[i], states.repertoire) for i in range(seeds)]
-    return _curves(metrics, cfg.warmup_samples) | {"ms_per_generation": ms, SKILLS: skills, "t_dist": cfg.t_dist}
+    return _curves(metrics, warmup(cfg)) | {"ms_per_generation": ms, SKILLS: skills, "t_dist": cfg.t_dist}
 
 
 def quality_on_shared_niches(skills: list[Repertoire], qd_skills: list[Repertoire],
@@ -482,15 +340,11 @@ def figure_path(out: str) -> str:
 
 
 def _preset_name(algorithm: str, cfg: Config) -> str:
-    """A sweep's preset as a composition's name: an "mqd" run of version 0.4 (no steering, anchored at the
-    nearest skill) is "mqd-unsteered", one of version 0.5 (steered, nearest) "mqd-nearest-anchor"; other
-    settings of "mqd" than these and the default are named by their values."""
-    if algorithm != "mqd":
-        return algorithm
-    named = {(Config.steering_share, Config.anchor): "mqd", (0.0, "nearest"): "mqd-unsteered",
-             (Config.steering_share, "nearest"): "mqd-nearest-anchor"}
-    settings = (cfg.steering_share, cfg.anchor)
-    return named.get(settings, f"mqd (steering_share={settings[0]}, anchor={settings[1]})")
+    """A sweep's preset as a composition's name, its options other than the defaults (and Table II's) named."""
+    column = registry.make(cfg.task_name).table_ii_column if isinstance(cfg.task, str) else "2d"
+    table = presets.table_ii(algorithm, column)
+    changed = {o: v for o, v in cfg.algorithm_options if table.get(o) != v}
+    return algorithm + ("" if not changed else ":" + ",".join(f"{o}={v}" for o, v in changed.items()))
 
 
 def _baselines(paths: list[str], tasks: list[str], seeds: int, generations: int | None) -> dict[str, dict[str, Any]]:
@@ -568,7 +422,7 @@ def main() -> None:
     register_experiment_tasks(tasks)
     for task in [] if args.merge else tasks:  # a bad spec is refused before anything runs
         for spec in [*args.compositions, *(args.run or [])]:
-            configured(spec, Config.paper(task))
+            configured(spec, task)
 
     curves: dict[str, dict[str, dict[str, Any]]] = {}
     if args.baseline and args.sweep:
@@ -588,7 +442,7 @@ def main() -> None:
             for task, by in runs.items():
                 curves.setdefault(task, {}).update(
                     {_preset_name(alg, r.cfg) + (f"-{suffix}" if suffix else ""):
-                     _curves(r.metrics, r.cfg.warmup_samples) for alg, r in by.items()})
+                     _curves(r.metrics, warmup(r.cfg)) for alg, r in by.items()})
         seeds = {len(r.keys) for runs in loaded for by in runs.values() for r in by.values()}
         command = f"python experiments/sample_efficiency.py --sweep {' '.join(args.sweep)}"
         if args.run:  # beside the sweeps' runs, on their tasks and seeds (`mqd sweep` runs sweep.seed_keys too)

@@ -20,7 +20,7 @@ import numpy as np
 import report
 from sample_efficiency import register_experiment_tasks
 
-from mqd_jax import Config, presets, run_mqd, selection, steering
+from mqd_jax import Config, run_mqd, selection, steering
 from mqd_jax.run import get_task
 
 CHILDREN = 800
@@ -31,7 +31,7 @@ def accuracy(task_name: str, generations: int, seed: int) -> dict[float, tuple[f
     """Per step size s: (median |change| / (s t_dist), median cosine to the aim, median error / (s t_dist))."""
     cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations)
     state, _ = run_mqd(jax.random.PRNGKey(seed), cfg)
-    task, emitter, params, rep = get_task(cfg), presets.emitter(cfg), cfg.params(), state.repertoire
+    task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
     k_parents, k_direction, k_rollout = jax.random.split(jax.random.PRNGKey(1000 + seed), 3)
     parents = selection.sample_parents(k_parents, rep.novelty, rep.valid, CHILDREN)
     actions, behaviors = rep.actions[parents], rep.behaviors[parents]

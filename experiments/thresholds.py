@@ -5,7 +5,7 @@
 
 The paper says t_nov and t_qua "need to be chosen carefully" and gives no
 guidance. Every (t_nov, t_qua) pair and seed runs in ONE compiled, vmapped
-M-QD call (the thresholds are traced `Params`; `mqd_jax.sweep.threshold_grid`),
+M-QD call (the thresholds are the traced parameters of "mqd-paper"'s `Threshold`; `mqd_jax.sweep.grid`),
 sharded over the devices; QD runs the same seeds in a second call. Defaults:
 the task's Table II settings. Writes thresholds_<task>.json (per setting: final
 coverage and evaluations per seed), thresholds_<task>.md (means; QD's coverage
@@ -26,7 +26,7 @@ import report
 
 from mqd_jax import Config, plots
 from mqd_jax.folders import write_json
-from mqd_jax.sweep import run_batch, seed_keys, threshold_grid
+from mqd_jax.sweep import grid, run_batch, seed_keys
 
 
 def main() -> None:
@@ -43,13 +43,14 @@ def main() -> None:
     start = time.perf_counter()
     _, qd = run_batch(Config.paper(args.task, algorithm="qd", **extra), seed_keys(args.seeds))
     qd_s = time.perf_counter() - start
-    keys, params, pairs = threshold_grid(mqd, args.t_nov, args.t_qua, args.seeds)
+    thresholds = {"emitter.acquisition.t_nov": args.t_nov, "emitter.acquisition.t_qua": args.t_qua}
+    keys, params, pairs = grid(mqd, thresholds, args.seeds)
     start = time.perf_counter()
-    _, grid = run_batch(mqd, keys, params)
+    _, runs = run_batch(mqd, keys, params)
     grid_s = time.perf_counter() - start
     shape = (len(pairs), args.seeds)
-    coverage = grid["coverage"][:, -1].reshape(shape)
-    spent = grid["num_evaluations"][:, -1].reshape(shape)
+    coverage = runs["coverage"][:, -1].reshape(shape)
+    spent = runs["num_evaluations"][:, -1].reshape(shape)
     qd_cov, qd_evals = qd["coverage"], qd["num_evaluations"]
     lines = [f"{args.task}, Table II settings, {mqd.max_generations} generations, {args.seeds} seeds (means); "
              f"{report.machine()}. All {len(pairs)} settings x {args.seeds} seeds in one vmapped call: {grid_s:.0f} s "
