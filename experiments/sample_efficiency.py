@@ -54,7 +54,7 @@ import report
 from mqd_jax import (
     Config,
     ModelEmitter,
-    presets,
+    algorithms,
     registry,
     results,
     stats,
@@ -342,7 +342,7 @@ def figure_path(out: str) -> str:
 def _preset_name(algorithm: str, cfg: Config) -> str:
     """A sweep's preset as a composition's name, its options other than the defaults (and Table II's) named."""
     column = registry.make(cfg.task_name).table_ii_column if isinstance(cfg.task, str) else "2d"
-    table = presets.table_ii(algorithm, column)
+    table = algorithms.table_ii(algorithm, column)
     changed = {o: v for o, v in cfg.algorithm_options if table.get(o) != v}
     return algorithm + ("" if not changed else ":" + ",".join(f"{o}={v}" for o, v in changed.items()))
 

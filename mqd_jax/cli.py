@@ -32,8 +32,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax import adaptation, checkpoint, folders, plots, presets, registry, results, sweep
-from mqd_jax.config import PRESETS, Config, upgraded
+from mqd_jax import adaptation, algorithms, checkpoint, folders, plots, registry, results, sweep
+from mqd_jax.config import Config, upgraded
 from mqd_jax.provenance import provenance
 from mqd_jax.run import State, get_task
 
@@ -105,8 +105,8 @@ def _option(text: str) -> tuple[str, Any]:
 def _presets_help() -> str:
     """Each preset's options with their defaults (the epilog of `mqd run --help`)."""
     lines = ["algorithm options (--algorithm-option NAME=VALUE; defaults: Table II's 2D column):"]
-    for name in PRESETS:
-        taken = presets.options(name)
+    for name in algorithms.names():
+        taken = algorithms.options(name)
         lines.append(f"  {name}: " + (", ".join(f"{o}={d!r}" for o, d in taken.items()) or "none"))
     return "\n".join(lines)
 
@@ -124,7 +124,7 @@ def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (
                              (", auto: paper-robot for the robot tasks, else paper-2d" if preset == "auto" else "") +
                              " (default: %(default)s)")
     base = COLUMNS[preset](**(defaults or {})) if preset in COLUMNS else None
-    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(PRESETS)}"}
+    specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(algorithms.names())}"}
     for field in dataclasses.fields(Config):
         if field.name in skip or field.name == "algorithm_options":
             continue
@@ -149,7 +149,7 @@ def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str
     options = dict(args.algorithm_options)
     algorithm = given.get("algorithm", Config.algorithm)
     if "algorithm" in fixed:  # a sweep's: only the options this algorithm takes
-        options = {o: v for o, v in options.items() if o in presets.options(algorithm)}
+        options = {o: v for o, v in options.items() if o in algorithms.options(algorithm)}
     preset = Config.paper if args.preset == "auto" else COLUMNS[args.preset]
     return preset(**{**(defaults or {}), **given, "algorithm_options": options})
 
@@ -279,7 +279,7 @@ def _run(args: argparse.Namespace) -> None:
 
 
 def _sweep(args: argparse.Namespace) -> None:
-    taken = {o for a in args.algorithms for o in presets.options(a)}
+    taken = {o for a in args.algorithms for o in algorithms.options(a)}
     untaken = [o for o, _ in args.algorithm_options if o not in taken]
     if untaken:
         raise ValueError(f"--algorithm-option {untaken[0]}: none of the algorithms {', '.join(args.algorithms)} "
@@ -291,7 +291,7 @@ def _sweep(args: argparse.Namespace) -> None:
                                 "command continues with the next one")
     with folders.lock(args.out) as leftovers:
         _say_removed(leftovers, "left by an interrupted writer")
-        _say_removed(folders.claim(args.out, "sweep", {}, results.FILES, args.overwrite), "--overwrite")
+        _say_removed(folders.claim(args.out, "sweep", {}, results.files(), args.overwrite), "--overwrite")
         # Every conflict is found before anything runs, not after hours of other batches.
         clash = results.conflicts(args.out, batches)
         differ = {s: c for s, c in clash.items() if not c.stale}
@@ -469,7 +469,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     _add_config_flags(sw, skip=_PER_TASK, preset="auto")
     sw.add_argument("--tasks", nargs="+", default=list(registry.registered_tasks()), metavar="TASK",
                     help=f"tasks to sweep: {_task_names()} (default: every registered task)")
-    sw.add_argument("--algorithms", nargs="+", default=list(PRESETS), choices=PRESETS,
+    sw.add_argument("--algorithms", nargs="+", default=list(algorithms.names()), choices=algorithms.names(),
                     help="default: all four")
     sw.add_argument("--seeds", type=_positive, default=None,
                     help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")

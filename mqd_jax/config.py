@@ -25,14 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mqd_jax import presets, registry
+from mqd_jax import algorithms, registry
 from mqd_jax.checks import check_traced, is_int, is_real
-from mqd_jax.emitters import Emitter
+from mqd_jax.emitter import Emitter
 from mqd_jax.params import Params
 from mqd_jax.task import Task, check_task
-
-# The named emitters `Config.algorithm` may give (`mqd_jax.presets`), in the order tables show them.
-PRESETS = tuple(presets.PRESETS)
 
 
 def check_params(params: Params, cfg: Config) -> None:
@@ -74,8 +71,9 @@ class Config:
 
     Attributes:
       task: a registered task's name (`mqd_jax.registry`) or a `Task`.
-      algorithm: a preset's name (`PRESETS`: "mqd", "mqd-paper", "qd", "random") or any `Emitter`.
-      algorithm_options: a preset's options (a dict, `mqd_jax.presets`: `presets.options(name)` lists them with
+      algorithm: a registered algorithm's name (`mqd_jax.algorithms`; the presets "mqd", "mqd-paper", "qd",
+        "random") or any `Emitter`.
+      algorithm_options: its options (a dict, `mqd_jax.presets`: `algorithms.options(name)` lists them with
         their defaults); held as the sorted pairs that differ from the defaults, so configs that mean the same
         run compare, hash and save the same.
       max_generations, population_size: the run's length and candidates per generation.
@@ -111,8 +109,8 @@ class Config:
                "'package.module:factory'")
         if isinstance(self.task, Task):
             check_task(self.task, type(self.task).__name__)
-        _check(isinstance(self.algorithm, Emitter) or self.algorithm in PRESETS, "algorithm", self.algorithm,
-               f"an Emitter or one of the presets {PRESETS}")
+        _check(isinstance(self.algorithm, Emitter) or self.algorithm in algorithms.names(), "algorithm",
+               self.algorithm, f"an Emitter or one of the algorithms {algorithms.names()}")
         for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1), ("capacity", 1),
                          ("archive_capacity", 1), ("neighbour_slack", 0), ("coverage_resolution", 8)):
             v = getattr(self, name)
@@ -125,11 +123,11 @@ class Config:
             _check(not given, "algorithm_options", dict(given), "{} with an Emitter (it carries its own settings)")
             emitter = self.algorithm
         else:
-            defaults = presets.options(self.algorithm)
-            settings = presets.resolved(self.algorithm, dict(given))
+            defaults = algorithms.options(self.algorithm)
+            settings = algorithms.resolved(self.algorithm, dict(given))
             given = tuple((o, v) for o, v in sorted(settings.items()) if v != defaults[o] or type(v) is not
                           type(defaults[o]))
-            emitter = presets.build(self.algorithm, dict(given), self.k)
+            emitter = algorithms.build(self.algorithm, dict(given), self.k)
         object.__setattr__(self, "algorithm_options", given)
         emitter.check_run(self.population_size, self.max_generations)
         object.__setattr__(self, "_emitter", emitter)
@@ -144,7 +142,7 @@ class Config:
         """Every option of the preset (its defaults with `algorithm_options` over them); {} for an Emitter."""
         if isinstance(self.algorithm, Emitter):
             return {}
-        return presets.resolved(self.algorithm, dict(self.algorithm_options))
+        return algorithms.resolved(self.algorithm, dict(self.algorithm_options))
 
     @classmethod
     def paper_2d(cls, **overrides: Any) -> Config:
@@ -159,7 +157,8 @@ class Config:
     @classmethod
     def _column(cls, column: str, base: dict[str, Any], overrides: dict[str, Any]) -> Config:
         algorithm = overrides.get("algorithm", cls.algorithm)
-        table = presets.table_ii(algorithm, column) if isinstance(algorithm, str) and algorithm in PRESETS else {}
+        named = isinstance(algorithm, str) and algorithm in algorithms.names()
+        table = algorithms.table_ii(algorithm, column) if named else {}
         options = {**table, **dict(_options(overrides.get("algorithm_options", ())))}
         return cls(**{**base, **overrides, "algorithm_options": options})
 
@@ -203,9 +202,9 @@ class Config:
         unknown = set(saved) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"a saved config with unknown fields {sorted(unknown)} (from another version?)")
-        if saved.get("algorithm") not in PRESETS:
-            raise ValueError(f"a saved config of the emitter {saved.get('algorithm')!r}: only presets {PRESETS} can "
-                             "be rebuilt from a file; build its Config in Python")
+        if saved.get("algorithm") not in algorithms.names():
+            raise ValueError(f"a saved config of the emitter {saved.get('algorithm')!r}: only the algorithms "
+                             f"{algorithms.names()} can be rebuilt from a file; build its Config in Python")
         task = saved.get("task")
         if not (isinstance(task, str) and registry.is_task(task)):
             raise ValueError(f"a saved config of the task {task!r}, which is not registered here")
@@ -229,8 +228,11 @@ _FLAT = ("t_nov", "t_qua", "learning_rate", "batch_size", "num_batches", "warmup
          "parent_weight", "quality_share", "wide_scale", "budgeted")
 # Adaptation's settings, arguments of `mqd_jax.adapt` since version 0.10.
 _ADAPTATION = ("adaptation_step_size", "adaptation_steps")
-# Today's defaults of the flat fields, for configs saved before a field existed.
-_FLAT_DEFAULTS = {**presets.options("mqd"), **presets.options("mqd-paper")}
+
+
+def _flat_defaults() -> dict[str, Any]:
+    """Today's defaults of the flat fields, for configs saved before a field existed."""
+    return {**algorithms.options("mqd"), **algorithms.options("mqd-paper")}
 
 
 def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
@@ -247,28 +249,29 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     saved = dict(saved)
     if "algorithm_options" in saved:  # today's
         return saved
+    defaults = _flat_defaults()
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
         if saved.get("algorithm") == "mqd":
             saved["algorithm"] = "mqd-paper"
         for name in ("ensemble_size", "optimism"):  # fields that did not exist: today's defaults
-            saved[name] = _FLAT_DEFAULTS[name]
+            saved[name] = defaults[name]
     if "steering_share" not in saved:  # before version 0.5 "mqd" did not steer
-        saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["steering_share"]
+        saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else defaults["steering_share"]
     if "anchor" not in saved:  # before version 0.6 "mqd" anchored at the nearest skill
-        saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["anchor"]
+        saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else defaults["anchor"]
     if "parent_weight" not in saved:  # before version 0.7 "mqd" ranked by the predicted distance alone
-        saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["parent_weight"]
+        saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else defaults["parent_weight"]
     if "quality_share" not in saved:  # before version 0.8 "mqd" made no quality steps
-        saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["quality_share"]
+        saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else defaults["quality_share"]
     if "wide_scale" not in saved:  # before version 0.9 "mqd" varied its pool at one scale
-        saved["wide_scale"] = 1.0 if saved.get("algorithm") == "mqd" else _FLAT_DEFAULTS["wide_scale"]
+        saved["wide_scale"] = 1.0 if saved.get("algorithm") == "mqd" else defaults["wide_scale"]
     backend = saved.pop("physics_backend", "auto")
     if backend != "auto":
         saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}
     flat = {name: saved.pop(name) for name in _FLAT if name in saved}  # before version 0.10: fields of the config
     for name in _ADAPTATION:
         saved.pop(name, None)
-    taken = presets.options(saved["algorithm"]) if saved.get("algorithm") in PRESETS else {}
+    taken = algorithms.options(saved["algorithm"]) if saved.get("algorithm") in algorithms.names() else {}
     saved["algorithm_options"] = {name: value for name, value in flat.items() if name in taken}
     return saved

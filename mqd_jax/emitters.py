@@ -1,31 +1,4 @@
-"""Emitters: the parts of a search that propose candidates and learn from their rollouts.
-
-An emitter (like optax's `GradientTransformation` or QDax's `Emitter`) is a
-frozen dataclass of static settings with three pure functions over a state of
-its own (any pytree, e.g. a `flax.struct` dataclass):
-
-    state = emitter.init(key, task)
-    proposal = emitter.propose(key, state, repertoire, task, params, num)
-    state, metrics = emitter.update(key, state, proposal, evaluated, repertoire, task, params)
-
-Static settings are the dataclass's fields; traced parameters (float32 scalars a
-run may `vmap` over) are the emitter's own: `default_params()` gives them from
-its fields, `check_params` refuses bad concrete values, and `propose`/`update`
-read them as `params.emitter.<name>` (`mqd_jax.params.Params`; the engine's
-`params.t_dist` beside them). `check_run(population_size, max_generations)`
-refuses, before anything is traced, a run the emitter cannot serve.
-
-`propose` gives `num` candidate actions and which of them to roll out;
-`update` sees their results (`Evaluated`) and the repertoire after they were
-inserted, and returns the scalars named by `metrics()` (they join a run's
-per-generation metrics). All three are traced inside one jitted generation:
-they must be jittable and vmappable (no Python branching on array values).
-Emitters compose by wrapping: `mqd_jax.model_emitter.ModelEmitter(IsoLine())`
-filters or ranks what the inner emitter proposes.
-
-This module holds the protocol and the two emitters of the paper's baselines:
-`Uniform` (RANDOM) and `IsoLine` (QD).
-"""
+"""The paper's baseline emitters: `Uniform` (RANDOM) and `IsoLine` (QD) (the protocol: `mqd_jax.emitter`)."""
 
 from __future__ import annotations
 
@@ -38,94 +11,10 @@ from flax import struct
 
 from mqd_jax import selection, variation
 from mqd_jax.checks import check_traced, is_real
+from mqd_jax.emitter import Emitter, Proposal, action_bounds
 from mqd_jax.params import Params
 from mqd_jax.repertoire import Repertoire
 from mqd_jax.task import Task
-
-
-@struct.dataclass
-class Proposal:
-    """What `Emitter.propose` returns (num candidates).
-
-    Attributes:
-      actions: [num, n] candidate actions inside the task's action box.
-      rollout: [num] bool, the candidates worth a rollout; the others are not
-        evaluated (a backend that can skip rollouts skips them) and not inserted.
-      info: any pytree the emitter hands to its own `update` (e.g. the model's
-        predictions). A wrapper that keeps some rows of its inner emitter's
-        proposal keeps the same rows of every leaf whose leading axis is num.
-      parents: [num] int32, the repertoire slot of the skill each candidate was
-        varied from (its first parent), -1 for a candidate with none (uniform);
-        or None where the emitter does not say. Read by a wrapper
-        (`ModelEmitter` anchors its predictions there); `update` is not given it.
-    """
-
-    actions: jax.Array
-    rollout: jax.Array
-    info: Any = ()
-    parents: jax.Array | None = None
-
-
-@struct.dataclass
-class Evaluated:
-    """A proposal's outcome, as `Emitter.update` sees it (num candidates).
-
-    Attributes:
-      behaviors: [num, d], qualities: [num]: the rollouts' results; zeros
-        where `usable` is False.
-      usable: [num] bool, rolled out and returned a valid, finite result.
-      status: [num] int32 `repertoire.AddStatus` of each candidate's insertion.
-    """
-
-    behaviors: jax.Array
-    qualities: jax.Array
-    usable: jax.Array
-    status: jax.Array
-
-
-def action_bounds(task: Task) -> tuple[jax.Array, jax.Array]:
-    """The task's action box as float32 arrays low [n], high [n]."""
-    return jnp.asarray(task.action_low, jnp.float32), jnp.asarray(task.action_high, jnp.float32)
-
-
-@dataclasses.dataclass(frozen=True)
-class Emitter:
-    """Base class of emitters: subclass it as a frozen dataclass and implement `propose`.
-
-    The defaults: no state, an `update` that changes nothing and no metrics.
-    """
-
-    def init(self, key: jax.Array, task: Task) -> Any:
-        """The emitter's state before the first generation (a pytree; default: none)."""
-        del key, task
-        return ()
-
-    def default_params(self) -> Any:
-        """The emitter's traced parameters (a pytree of float32 scalars), from its fields (default: none)."""
-        return ()
-
-    def check_params(self, params: Any) -> None:
-        """Raises ValueError, naming the parameter, for a bad concrete value of `default_params()`'s kind."""
-        del params
-
-    def check_run(self, population_size: int, max_generations: int) -> None:
-        """Raises ValueError if the emitter cannot serve a run of this size (default: it can)."""
-        del population_size, max_generations
-
-    def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
-                num: int) -> Proposal:
-        """`num` candidates from the repertoire as it stands (see `Proposal`)."""
-        raise NotImplementedError
-
-    def update(self, key: jax.Array, state: Any, proposal: Proposal, evaluated: Evaluated, repertoire: Repertoire,
-               task: Task, params: Params) -> tuple[Any, dict[str, jax.Array]]:
-        """The state after the proposal's rollouts, and this generation's metrics (scalars named in `metrics`)."""
-        del key, proposal, evaluated, repertoire, task, params
-        return state, {}
-
-    def metrics(self) -> dict[str, Any]:
-        """{name: dtype} of the scalars `update` returns (default: none)."""
-        return {}
 
 
 def _uniform_key(key: jax.Array) -> jax.Array:

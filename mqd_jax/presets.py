@@ -10,19 +10,18 @@ a gradient transformation).
                                                              (or Budgeted(pool_factor) when budgeted)
 
 Each preset's defaults are in its signature: the model's are Table II's 2D column (`TABLE_II` holds both
-columns). A `Config` names a preset as `algorithm="mqd"` with `algorithm_options={"pool_factor": 16}`,
-checked against the signature (`options`, `build`); `k` is the run's (`Config.k`), passed by the config.
+columns). They are registered with `mqd_jax.algorithms`: a `Config` names a preset as `algorithm="mqd"`
+with `algorithm_options={"pool_factor": 16}`, checked against the signature (`algorithms.options`,
+`algorithms.build`); `k` is the run's (`Config.k`), passed by the config.
 "mqd" is the best composition measured (docs/results.md); "mqd-paper" reproduces the paper's Algorithm 1.
 """
 
 from __future__ import annotations
 
-import inspect
-from collections.abc import Callable, Mapping
-from typing import Any
-
+from mqd_jax import algorithms
 from mqd_jax.acquisition import Budgeted, Diverse, Threshold
-from mqd_jax.emitters import Emitter, IsoLine, Uniform
+from mqd_jax.emitter import Emitter
+from mqd_jax.emitters import IsoLine, Uniform
 from mqd_jax.model_emitter import Fallback, ModelEmitter
 from mqd_jax.steering import Steering
 
@@ -32,8 +31,6 @@ TABLE_II = {
     "robot": {"learning_rate": 1e-3, "batch_size": 16, "num_batches": 500, "warmup_samples": 1000,
               "hidden_size": 64},
 }
-# Options that are not the user's to give: the config passes its own.
-CONTEXT = ("k",)
 
 
 def random() -> Emitter:
@@ -90,42 +87,8 @@ def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: boo
                         warmup_samples=warmup_samples)
 
 
-# The presets `Config.algorithm` may name.
-PRESETS: dict[str, Callable[..., Emitter]] = {"mqd": mqd, "mqd-paper": mqd_paper, "qd": qd, "random": random}
-
-
-def options(name: str) -> dict[str, Any]:
-    """{option: default} of the preset `name`, without the config's own (`CONTEXT`)."""
-    return {p.name: p.default for p in inspect.signature(PRESETS[name]).parameters.values() if p.name not in CONTEXT}
-
-
-def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
-    """Every option of the preset `name`: its defaults with `given` over them. Raises ValueError for an option it
-    does not take, or a value of another type than its default's (an int is a float too)."""
-    known = options(name)
-    for option, value in given.items():
-        if option in CONTEXT:
-            raise ValueError(f"algorithm_options: {option!r} is the run's own (Config.{option}), not an option of "
-                             f"{name!r}")
-        if option not in known:
-            listed = ", ".join(f"{o}={d!r}" for o, d in known.items()) or "none"
-            raise ValueError(f"algorithm_options: {name!r} takes no option {option!r}; its options: {listed}")
-        default = known[option]
-        same = type(value) is type(default) or (type(default) is float and type(value) is int)
-        if not same:
-            raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected a "
-                             f"{type(default).__name__} (default {default!r})")
-    return {**known, **{o: float(v) if type(known[o]) is float else v for o, v in given.items()}}
-
-
-def build(name: str, given: Mapping[str, Any], k: int) -> Emitter:
-    """The emitter of the preset `name` with the options `given` (checked: `resolved`) and the run's `k`."""
-    settings = resolved(name, given)
-    if "k" in inspect.signature(PRESETS[name]).parameters:
-        settings["k"] = k
-    return PRESETS[name](**settings)
-
-
-def table_ii(name: str, column: str) -> dict[str, Any]:
-    """The options of Table II's `column` ("2d" or "robot") that the preset `name` takes."""
-    return {o: v for o, v in TABLE_II[column].items() if o in options(name)}
+# The presets `Config.algorithm` may name, in the order tables show them; the model's options per Table II column.
+algorithms.register("mqd", mqd, TABLE_II)
+algorithms.register("mqd-paper", mqd_paper, TABLE_II)
+algorithms.register("qd", qd)
+algorithms.register("random", random)

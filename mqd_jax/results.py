@@ -42,8 +42,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax import checkpoint, registry
-from mqd_jax.config import PRESETS, Config, upgraded
+from mqd_jax import algorithms, checkpoint, registry
+from mqd_jax.config import Config, upgraded
 from mqd_jax.folders import Damaged, differences, read_json, read_npz, write_atomically, write_json, write_npz
 from mqd_jax.provenance import machine, provenance
 from mqd_jax.run import State, get_task
@@ -56,7 +56,12 @@ PAPER_ALGORITHM = {"mqd-paper": "mqd", "qd": "qd", "random": "random"}
 # The files a sweep folder holds (glob patterns, for `folders.claim`), and those made from them.
 DERIVED = ("table1.md", "adaptation.md", "fig2_*.png", "fig3_adaptation_error.png", "fig4_adaptation_steps.png")
 ADAPTATION = "adaptation.json"
-FILES = (*(f"*_{a}.{ext}" for a in PRESETS for ext in ("json", "npz")), "*_mqd.msgpack", ADAPTATION, *DERIVED)
+
+
+def files() -> tuple[str, ...]:
+    """The files a sweep folder holds (glob patterns, for `folders.claim`) and those made from them."""
+    return (*(f"*_{a}.{ext}" for a in algorithms.names() for ext in ("json", "npz")), "*_mqd.msgpack", ADAPTATION,
+            *DERIVED)
 # What a batch's JSON holds besides its metrics.
 BATCH_KEYS = ("config", "keys", "implementation", "provenance", "wall_s", "machine", "metrics")
 
@@ -123,7 +128,7 @@ def scan(out: str) -> tuple[list[tuple[str, dict[str, Any]]], dict[str, Damaged]
     """The batches in `out`: [(stem, saved JSON)] of the sound ones, and {stem: Damaged} of the damaged ones (a
     file unreadable, missing, altered, or without checksum)."""
     found, damaged = [], {}
-    patterns = [f"*_{a}.{ext}" for a in PRESETS for ext in ("json", "npz")]
+    patterns = [f"*_{a}.{ext}" for a in algorithms.names() for ext in ("json", "npz")]
     names = {os.path.basename(p) for pattern in patterns for p in glob.glob(os.path.join(glob.escape(out), pattern))}
     for stem in sorted({os.path.join(out, n.rsplit(".", 1)[0]) for n in names}, key=lambda s: s + ".json"):
         try:
@@ -228,9 +233,9 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
     back by name; save other runs with `mqd_jax.checkpoint.save`); removes the
     tables and figures made from the folder's earlier results.
     """
-    if cfg.algorithm not in PRESETS or registry.name_of(cfg.task) is None:
-        raise ValueError(f"a results folder holds presets {PRESETS} of registered tasks, not {cfg.algorithm!r} on "
-                         f"{cfg.task!r}: save such runs with mqd_jax.checkpoint.save")
+    if cfg.algorithm not in algorithms.names() or registry.name_of(cfg.task) is None:
+        raise ValueError(f"a results folder holds the algorithms {algorithms.names()} of registered tasks, not "
+                         f"{cfg.algorithm!r} on {cfg.task!r}: save such runs with mqd_jax.checkpoint.save")
     clash = conflicts(out, [(cfg, keys)])
     if clash:
         raise ValueError(f"{out!r} refused: {describe(clash)}")
@@ -310,7 +315,7 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
             rep["behaviors"])
     if not found:
         raise ValueError(f"{out!r} holds no sweep results (<task>_<algorithm>.json with .npz): run `mqd sweep` first")
-    return {task: dict(sorted(found[task].items(), key=lambda kv: PRESETS.index(kv[0])))
+    return {task: dict(sorted(found[task].items(), key=lambda kv: algorithms.names().index(kv[0])))
             for task in sorted(found, key=task_order)}
 
 
@@ -370,7 +375,7 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
     """Markdown: Table I (final coverage, the paper's layout, the paper's values beside our runs of its
     algorithms: "mqd-paper", "qd", "random"), the mean-quality
     table, and per task the evaluations, wall times and two-sided Mann-Whitney U p-values on final coverage."""
-    algs = [a for a in PRESETS if any(a in r for r in runs.values())]
+    algs = [a for a in algorithms.names() if any(a in r for r in runs.values())]
     seeds = sorted({len(r.keys) for by in runs.values() for r in by.values()})
 
     def cells(task: str, cell: Callable[[str, Runs], str]) -> list[str]:

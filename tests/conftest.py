@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, Task, cli, presets, registry
+from mqd_jax import Config, Task, algorithms, cli, registry
 
 FUSION_EMITTERS = "MQD_TESTS_FUSION_EMITTERS"  # set: this process keeps XLA's default (fusion) emitters
 
@@ -83,7 +83,7 @@ def _tiny(**kw):
     options = {k: v for k, v in kw.items() if k not in fields}
     algorithm = kw.get("algorithm", Config.algorithm)
     if isinstance(algorithm, str):
-        options = {k: v for k, v in options.items() if k in presets.options(algorithm)}
+        options = {k: v for k, v in options.items() if k in algorithms.options(algorithm)}
     return Config(**{**base, **{k: v for k, v in kw.items() if k in fields}, "algorithm_options": options})
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from mqd_jax import Config, IsoLine, ModelEmitter, Params, Steering, model, presets, run_mqd
+from mqd_jax import Config, IsoLine, ModelEmitter, Params, Steering, algorithms, model, run_mqd
 from mqd_jax import repertoire as repertoire_lib
 from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
 from mqd_jax.emitters import Evaluated
@@ -450,7 +450,7 @@ def flat(cfg):
     """`cfg` as a config dict of version 0.9, when every preset's settings were fields of the config."""
     saved = cfg.to_dict()
     options = saved.pop("algorithm_options")
-    return {**saved, **presets.options("mqd"), **presets.options("mqd-paper"), **options,
+    return {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
             "adaptation_step_size": 0.1, "adaptation_steps": 10}
 
 

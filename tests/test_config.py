@@ -7,7 +7,7 @@ import numpy as np
 import plugin_tasks
 import pytest
 
-from mqd_jax import Budgeted, Config, IsoLine, ModelEmitter, adaptation, folders, presets, registry
+from mqd_jax import Budgeted, Config, IsoLine, ModelEmitter, adaptation, algorithms, folders, registry
 
 DATA = pathlib.Path(__file__).resolve().parent / "data" / "v0.9.0"
 
@@ -65,7 +65,7 @@ def test_options_equal_to_the_defaults_are_the_same_config():
     assert Config(algorithm="mqd", algorithm_options={"pool_factor": 8, "optimism": 1}) == Config(algorithm="mqd")
     cfg = Config(algorithm="mqd", algorithm_options={"pool_factor": 16})
     assert cfg.algorithm_options == (("pool_factor", 16),) and cfg.emitter.acquisition.pool_factor == 16
-    assert cfg.to_dict()["algorithm_options"] == {**presets.options("mqd"), "pool_factor": 16}  # all written out
+    assert cfg.to_dict()["algorithm_options"] == {**algorithms.options("mqd"), "pool_factor": 16}  # all written out
     assert Config.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     with pytest.raises(ValueError, match=r"Config.algorithm_options=.*with an Emitter"):
         Config(algorithm=IsoLine(), algorithm_options={"iso_sigma": 0.1})

@@ -1,0 +1,73 @@
+"""Algorithm names: the registry that `Config(algorithm="name")` resolves through, as tasks resolve through
+`mqd_jax.registry`.
+
+An algorithm is a function of keyword options that returns an `Emitter` (`mqd_jax.presets` registers "mqd",
+"mqd-paper", "qd" and "random"; `register(name, function)` adds one). Its options are its keyword parameters,
+their defaults in its signature; `CONTEXT` names those the config fills in itself (`k`: `Config.k`). An
+algorithm may say which of its options Table II sets per column (`table_ii`).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from mqd_jax.emitter import Emitter
+
+# Options that are not the user's to give: the config passes its own.
+CONTEXT = ("k",)
+_FUNCTIONS: dict[str, Callable[..., Emitter]] = {}
+_TABLE_II: dict[str, Mapping[str, Mapping[str, Any]]] = {}
+
+
+def register(name: str, function: Callable[..., Emitter],
+             table_ii: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+    """Registers `function` (keyword options -> Emitter) as the algorithm `name`; `table_ii`: {column: options}
+    that `Config.paper_2d` / `paper_robot` set. Raises ValueError if `name` is taken."""
+    if name in _FUNCTIONS:
+        raise ValueError(f"algorithm {name!r} is already registered")
+    _FUNCTIONS[name] = function
+    _TABLE_II[name] = dict(table_ii or {})
+
+
+def names() -> tuple[str, ...]:
+    """The registered algorithms, in the order they were registered."""
+    return tuple(_FUNCTIONS)
+
+
+def options(name: str) -> dict[str, Any]:
+    """{option: default} of the algorithm `name`, without the config's own (`CONTEXT`)."""
+    parameters = inspect.signature(_FUNCTIONS[name]).parameters.values()
+    return {p.name: p.default for p in parameters if p.name not in CONTEXT}
+
+
+def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
+    """Every option of the algorithm `name`: its defaults with `given` over them. Raises ValueError for an option
+    it does not take, or a value of another type than its default's (an int is a float too)."""
+    known = options(name)
+    for option, value in given.items():
+        if option in CONTEXT:
+            raise ValueError(f"algorithm_options: {option!r} is the run's own (Config.{option}), not an option of "
+                             f"{name!r}")
+        if option not in known:
+            listed = ", ".join(f"{o}={d!r}" for o, d in known.items()) or "none"
+            raise ValueError(f"algorithm_options: {name!r} takes no option {option!r}; its options: {listed}")
+        default = known[option]
+        if not (type(value) is type(default) or (type(default) is float and type(value) is int)):
+            raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected a "
+                             f"{type(default).__name__} (default {default!r})")
+    return {**known, **{o: float(v) if type(known[o]) is float else v for o, v in given.items()}}
+
+
+def build(name: str, given: Mapping[str, Any], k: int) -> Emitter:
+    """The emitter of the algorithm `name` with the options `given` (checked: `resolved`) and the run's `k`."""
+    settings = resolved(name, given)
+    if "k" in inspect.signature(_FUNCTIONS[name]).parameters:
+        settings["k"] = k
+    return _FUNCTIONS[name](**settings)
+
+
+def table_ii(name: str, column: str) -> dict[str, Any]:
+    """The options of Table II's `column` ("2d" or "robot") that the algorithm `name` takes."""
+    return dict(_TABLE_II[name].get(column, {}))
