@@ -123,7 +123,7 @@ def truncated(action: np.ndarray, times: np.ndarray) -> np.ndarray:
 
 def frames(task: Any, action: np.ndarray, width: int, height: int, num: int = 40) -> np.ndarray:
     """`Task.frames` of a 2D task: its behavior along the action, `num` frames, drawn over its layout."""
-    from mqd_jax import plots
+    from mqd_jax.experiment import plots
 
     end = len(np.asarray(action)) // 3 * MAX_DURATION
     path, _, _ = task.evaluate(truncated(action, np.linspace(0.0, end, num)))

@@ -26,7 +26,7 @@ so its final position is not yet known), or when the task's outcome says so
 accelerator), "warp" (MuJoCo Warp through MJX, NVIDIA GPUs; the `gpu` extra)
 or "auto" (the default: "mujoco" when `jax.default_backend()` is "cpu", else
 "warp" on a CUDA GPU with MuJoCo Warp installed, else "mjx");
-`mqd_jax.registry.make(name, backend=...)` sets it. A scene whose MJCF asks for
+`mqd_jax.core.registry.make(name, backend=...)` sets it. A scene whose MJCF asks for
 MuJoCo's discrete integrator (Place: a friction grasp) runs on "mujoco" and
 "warp" only; MJX's JAX implementation does not have that integrator, and is
 refused with a clear error.
@@ -45,7 +45,7 @@ from flax import struct
 from mujoco import rollout
 
 from envs import kuka
-from mqd_jax.task import Region, Task
+from mqd_jax.core.task import Region, Task
 
 BACKENDS = ("auto", "mujoco", "mjx", "warp")
 SETTLE = 250  # steps (1 s) after the motion for the object to come to rest

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from envs import arena2d
-from mqd_jax.task import Region, Task
+from mqd_jax.core.task import Region, Task
 
 # The agent starts in a corner, 0.57 from the object at the centre: a random path of 5 sub-actions seldom
 # reaches it, and a repertoire has to learn to get there before it can learn where to push it

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from envs import arena2d
-from mqd_jax.task import Region, Task
+from mqd_jax.core.task import Region, Task
 
 START = (0.5, 0.1)
 AGENT_MARK = 0.015  # radius of the start marker in figures (the agent is a point)

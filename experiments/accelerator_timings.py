@@ -21,7 +21,7 @@ import jax
 import report
 
 from mqd_jax import Config, run_mqd
-from mqd_jax.sweep import run_batch, seed_keys
+from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 
 def ms_per_generation(cfg: Config) -> float:

@@ -22,7 +22,7 @@ import numpy as np
 import report
 
 from envs import kuka
-from mqd_jax import registry
+from mqd_jax.core import registry
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ import numpy as np
 import report
 from mujoco import rollout
 
-from mqd_jax import registry
+from mqd_jax.core import registry
 
 
 def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:

@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import Config, registry, run_mqd
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import registry
 
 TASK = "obstacle2d"
 

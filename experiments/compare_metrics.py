@@ -19,7 +19,7 @@ import sys
 
 import numpy as np
 
-from mqd_jax import results
+from mqd_jax.experiment import results
 
 
 def _digest(values: list) -> str:

@@ -16,7 +16,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 from PIL import Image
 
-from mqd_jax import registry
+from mqd_jax.core import registry
 
 SKILLS = {
     "push_cube": [0.45, 0.0, 0.0, 60, 0.8, 0.0, 0.0, 100],

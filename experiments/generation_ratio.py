@@ -22,7 +22,7 @@ import report
 from sample_efficiency import configured
 
 from mqd_jax import Config, init
-from mqd_jax.run import generation, run_generations
+from mqd_jax.core.run import generation, run_generations
 
 
 def main() -> None:

@@ -35,11 +35,13 @@ import numpy as np
 import report
 from sample_efficiency import register_experiment_tasks
 
-from mqd_jax import Config, model, run_mqd, selection
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.archive import Archive
-from mqd_jax.run import get_task
-from mqd_jax.task import Task
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core import selection
+from mqd_jax.core.archive import Archive
+from mqd_jax.core.run import get_task
+from mqd_jax.core.task import Task
+from mqd_jax.surrogate import model
 
 POOL, CHOSEN = 800, 100
 

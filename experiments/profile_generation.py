@@ -18,8 +18,10 @@ import jax
 import jax.numpy as jnp
 import report
 
-from mqd_jax import Config, ModelEmitter, coverage, init, model, repertoire
-from mqd_jax.run import ask, generation, get_task, run_generations
+from mqd_jax import Config, ModelEmitter, init
+from mqd_jax.core import coverage, repertoire
+from mqd_jax.core.run import ask, generation, get_task, run_generations
+from mqd_jax.surrogate import model
 
 
 def main() -> None:

@@ -18,7 +18,7 @@ import report
 from mujoco import rollout
 
 from envs import kuka, manipulation
-from mqd_jax import registry
+from mqd_jax.core import registry
 
 
 def _touched(model: mujoco.MjModel, initial_state: np.ndarray, ctrl: np.ndarray, until: np.ndarray) -> np.ndarray:

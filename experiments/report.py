@@ -1,4 +1,4 @@
-"""What the experiment scripts share beyond `mqd_jax.results` and `mqd_jax.plots`."""
+"""What the experiment scripts share beyond `mqd_jax.experiment.results` and `mqd_jax.experiment.plots`."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from mqd_jax.plots import pyplot
-from mqd_jax.provenance import machine
-from mqd_jax.results import write_markdown as write
+from mqd_jax.experiment.plots import pyplot
+from mqd_jax.experiment.provenance import machine
+from mqd_jax.experiment.results import write_markdown as write
 
 __all__ = ["coverage_at", "machine", "median_ms", "probe_arguments", "pyplot", "write"]
 

@@ -19,7 +19,9 @@ import jax
 import numpy as np
 import report
 
-from mqd_jax import Config, plots, registry, run_mqd
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import registry
+from mqd_jax.experiment import plots
 
 
 def main() -> None:

@@ -51,19 +51,14 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import (
-    Config,
-    ModelEmitter,
-    algorithms,
-    registry,
-    results,
-    stats,
-)
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.model_emitter import ModelEmitterState
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.sweep import run_batch, seed_keys
-from mqd_jax.task import Task
+from mqd_jax import Config, ModelEmitter
+from mqd_jax.core import algorithms, registry
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
+from mqd_jax.emitters.model_emitter import ModelEmitterState
+from mqd_jax.experiment import results, stats
+from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,7 +153,7 @@ def warmup(cfg: Config) -> int:
 
 def configured(spec: str, task: str, generations: int | None = None) -> Config:
     """The config a composition spec runs on `task` with Table II's settings: "NAME" (of `COMPOSITIONS`) or
-    "NAME:OPTION=VALUE,..." (options of the preset, `mqd_jax.presets`; the oracle takes "mqd"'s). Refused
+    "NAME:OPTION=VALUE,..." (options of the preset, `mqd_jax.emitters.presets`; the oracle takes "mqd"'s). Refused
     (SystemExit) for an unknown name or option and for an invalid value."""
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:

@@ -52,7 +52,7 @@ def main() -> None:
         rows += [(f"start {i + 1} ({'empty' if i == 0 else 'warm'} cache)", start([*COMMAND, *out], env))
                  for i in range(args.repeats)]
         began = time.perf_counter()
-        subprocess.run([sys.executable, "-c", "import mqd_jax.cli"], check=True)
+        subprocess.run([sys.executable, "-c", "import mqd_jax.experiment.cli"], check=True)
         imports = time.perf_counter() - began
     columns = ["to first generation", "compiling (reported)", "whole command"]
     first = rows[1][1]["to first generation"]

@@ -20,8 +20,10 @@ import numpy as np
 import report
 from sample_efficiency import register_experiment_tasks
 
-from mqd_jax import Config, run_mqd, selection, steering
-from mqd_jax.run import get_task
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import selection
+from mqd_jax.core.run import get_task
+from mqd_jax.emitters import steering
 
 CHILDREN = 800
 STEPS = (0.5, 1.0, 2.0, 4.0)

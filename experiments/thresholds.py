@@ -5,7 +5,7 @@
 
 The paper says t_nov and t_qua "need to be chosen carefully" and gives no
 guidance. Every (t_nov, t_qua) pair and seed runs in ONE compiled, vmapped
-M-QD call (the thresholds are the traced parameters of "mqd-paper"'s `Threshold`; `mqd_jax.sweep.grid`),
+M-QD call (the thresholds are the traced parameters of "mqd-paper"'s `Threshold`; `mqd_jax.experiment.sweep.grid`),
 sharded over the devices; QD runs the same seeds in a second call. Defaults:
 the task's Table II settings. Writes thresholds_<task>.json (per setting: final
 coverage and evaluations per seed), thresholds_<task>.md (means; QD's coverage
@@ -24,9 +24,10 @@ import time
 import numpy as np
 import report
 
-from mqd_jax import Config, plots
-from mqd_jax.folders import write_json
-from mqd_jax.sweep import grid, run_batch, seed_keys
+from mqd_jax import Config
+from mqd_jax.experiment import plots
+from mqd_jax.experiment.folders import write_json
+from mqd_jax.experiment.sweep import grid, run_batch, seed_keys
 
 
 def main() -> None:

@@ -2,7 +2,7 @@
 
     python experiments/vmap_vs_sequential.py [--task obstacle2d] [--seeds 25] [--algorithms qd mqd]
 
-Paper 2D settings. The vmapped sweep is `mqd_jax.sweep.run_batch` (what `mqd
+Paper 2D settings. The vmapped sweep is `mqd_jax.experiment.sweep.run_batch` (what `mqd
 sweep` runs), timed on its second call; the sequential one is a compiled
 `run_mqd` called once per key. Compilation is excluded from both; each time
 is the fastest of `--repeats` alternating measurements.
@@ -21,7 +21,7 @@ import numpy as np
 import report
 
 from mqd_jax import Config, run_mqd
-from mqd_jax.sweep import run_batch, seed_keys
+from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 
 def main() -> None:

@@ -34,12 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mqd_jax import model, neighbours
-from mqd_jax.checks import check_traced, is_int
-from mqd_jax.config import Config
-from mqd_jax.model_emitter import ModelEmitter
-from mqd_jax.run import State, check_state, get_task
-from mqd_jax.task import Task
+from mqd_jax.core import neighbours
+from mqd_jax.core.checks import check_traced, is_int
+from mqd_jax.core.config import Config
+from mqd_jax.core.run import State, check_state, get_task
+from mqd_jax.core.task import Task
+from mqd_jax.emitters.model_emitter import ModelEmitter
+from mqd_jax.surrogate import model
 
 METHODS = ("nearest", "linear", "model")
 # Table II: the step size lambda and the number of adaptation steps.

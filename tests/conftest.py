@@ -26,7 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, Task, algorithms, cli, registry
+from mqd_jax import Config, Task
+from mqd_jax.core import algorithms, registry
+from mqd_jax.experiment import cli
 
 FUSION_EMITTERS = "MQD_TESTS_FUSION_EMITTERS"  # set: this process keeps XLA's default (fusion) emitters
 

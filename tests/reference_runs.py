@@ -20,8 +20,9 @@ os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0 --xla_cpu
 import jax
 import numpy as np
 
-from mqd_jax import Config, registry, run_mqd
-from mqd_jax.provenance import provenance
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import registry
+from mqd_jax.experiment.provenance import provenance
 
 PATH = pathlib.Path(__file__).resolve().parent / "data" / "reference_runs.npz"
 ALGORITHMS = ("qd", "random", "mqd", "mqd-paper")

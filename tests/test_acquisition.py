@@ -10,13 +10,15 @@ import numpy as np
 import optax
 import pytest
 
-from mqd_jax import Config, IsoLine, ModelEmitter, Params, Steering, algorithms, model, run_mqd
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
-from mqd_jax.emitters import Evaluated
-from mqd_jax.model_emitter import _share, opener_auc
-from mqd_jax.pursuit import Fallback, FallbackState
-from mqd_jax.repertoire import AddStatus, Repertoire
+from mqd_jax import Config, IsoLine, ModelEmitter, Params, Steering, run_mqd
+from mqd_jax.core import algorithms
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.emitter import Evaluated
+from mqd_jax.core.repertoire import AddStatus, Repertoire
+from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
+from mqd_jax.emitters.model_emitter import _share, opener_auc
+from mqd_jax.emitters.pursuit import Fallback, FallbackState
+from mqd_jax.surrogate import model
 
 
 def repertoire_of(behaviors, qualities, actions=None, capacity=8):

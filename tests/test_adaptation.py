@@ -5,8 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, adapt, adaptation, init, model, registry, run_mqd
+from mqd_jax import Config, adapt, adaptation, init, run_mqd
 from mqd_jax.adaptation import METHODS
+from mqd_jax.core import registry
+from mqd_jax.surrogate import model
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import ask, init, registry, run_mqd, tell
+from mqd_jax import ask, init, run_mqd, tell
+from mqd_jax.core import registry
 
 
 def numpy_evaluator(actions, mask):

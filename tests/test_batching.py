@@ -1,10 +1,10 @@
-"""mqd_jax.batching: the same results as the plain control flow, member by member, with less work under vmap."""
+"""mqd_jax.core.batching: the same results as the plain control flow, member by member, with less work under vmap."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mqd_jax import batching
+from mqd_jax.core import batching
 
 
 def _recording(calls: list[int]):

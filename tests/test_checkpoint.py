@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from mqd_jax import Config, checkpoint, run_mqd
+from mqd_jax import Config, run_mqd
+from mqd_jax.experiment import checkpoint
 
 CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),
              population_size=16, max_generations=12, capacity=256, archive_capacity=64)

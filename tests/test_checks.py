@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from mqd_jax.checks import is_int, is_real
+from mqd_jax.core.checks import is_int, is_real
 
 
 @pytest.mark.parametrize(("value", "expected"), [(3, True), (0, True), (-2, True), (True, False), (False, False),

@@ -6,7 +6,8 @@ import jax
 import numpy as np
 import pytest
 
-from mqd_jax import Config, cli, run_mqd
+from mqd_jax import Config, run_mqd
+from mqd_jax.experiment import cli
 
 
 def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):

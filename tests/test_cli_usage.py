@@ -10,7 +10,9 @@ import jax
 import numpy as np
 import pytest
 
-from mqd_jax import Config, ask, checkpoint, cli, init, registry, run_mqd, tell
+from mqd_jax import Config, ask, init, run_mqd, tell
+from mqd_jax.core import registry
+from mqd_jax.experiment import checkpoint, cli
 
 
 def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_path, caplog):
@@ -134,14 +136,14 @@ def test_the_compilation_cache_is_on_by_default_and_can_be_turned_off(tmp_path, 
     assert cli.compilation_cache(True) == (None, f"no compilation cache ({cli.CACHE_ENV}=off)")
     # A fresh process without settings: the user's cache folder.
     env = {k: v for k, v in os.environ.items() if k not in (cli.CACHE_ENV, "JAX_COMPILATION_CACHE_DIR")}
-    code = ("from mqd_jax import cli; import jax; "
+    code = ("from mqd_jax.experiment import cli; import jax; "
             "print(cli.compilation_cache(True)[0], jax.config.jax_compilation_cache_dir)")
     out = subprocess.run([sys.executable, "-c", code], env={**env, "XDG_CACHE_HOME": str(tmp_path)},
                          capture_output=True, text=True, check=True).stdout.split()
     assert out == [str(tmp_path / "mqd-jax")] * 2
     # What the progress line says matches what happens: a folder that cannot be written leaves the cache off.
     (tmp_path / "a-file").write_text("")
-    code = ("from mqd_jax import cli; import jax; "
+    code = ("from mqd_jax.experiment import cli; import jax; "
             "print(cli.compilation_cache(True), jax.config.jax_compilation_cache_dir)")
     out = subprocess.run([sys.executable, "-c", code], env={**env, cli.CACHE_ENV: str(tmp_path / "a-file" / "x")},
                          capture_output=True, text=True, check=True).stdout

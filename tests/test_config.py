@@ -7,7 +7,9 @@ import numpy as np
 import plugin_tasks
 import pytest
 
-from mqd_jax import Budgeted, Config, IsoLine, ModelEmitter, adaptation, algorithms, folders, registry
+from mqd_jax import Budgeted, Config, IsoLine, ModelEmitter, adaptation
+from mqd_jax.core import algorithms, registry
+from mqd_jax.experiment import folders
 
 DATA = pathlib.Path(__file__).resolve().parent / "data" / "v0.9.0"
 
@@ -129,7 +131,7 @@ def test_composed_emitters_and_unnamed_tasks_are_saved_by_repr_and_refused_on_re
     saved = cfg.to_dict()
     assert saved["task"] == repr(task) and saved["algorithm"] == repr(emitter)
     assert (cfg.task_name, cfg.algorithm_name) == ("Reach", "ModelEmitter")
-    with pytest.raises(ValueError, match=r"only presets .* can be rebuilt from a file"):
+    with pytest.raises(ValueError, match=r"only the algorithms .* can be rebuilt from a file"):
         Config.from_dict(saved)
     with pytest.raises(ValueError, match="not registered here"):
         Config.from_dict({**saved, "algorithm": "qd"})

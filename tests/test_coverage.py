@@ -2,7 +2,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import coverage
+from mqd_jax.core import coverage
 
 
 def _coverage(centres, radius, reachable=None, resolution=256):

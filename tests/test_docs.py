@@ -7,7 +7,7 @@ import shlex
 
 import pytest
 
-from mqd_jax import cli
+from mqd_jax.experiment import cli
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

@@ -9,28 +9,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import (
-    Budgeted,
-    Config,
-    Emitter,
-    IsoLine,
-    ModelEmitter,
-    Params,
-    Proposal,
-    Threshold,
-    Uniform,
-    presets,
-    run_mqd,
-)
-from mqd_jax.acquisition import Judged
-from mqd_jax.emitters import action_bounds
-from mqd_jax.registry import make
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.run import METRICS
+from mqd_jax import Budgeted, Config, Emitter, IsoLine, ModelEmitter, Params, Proposal, Threshold, Uniform, run_mqd
+from mqd_jax.core.emitter import action_bounds
+from mqd_jax.core.registry import make
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.run import METRICS
+from mqd_jax.emitters import presets
+from mqd_jax.emitters.acquisition import Judged
 
 
 def test_importing_mqd_jax_and_its_modules_leaves_the_tasks_out():
-    code = ("import sys, mqd_jax, mqd_jax.cli, mqd_jax.results, mqd_jax.plots, mqd_jax.sweep, mqd_jax.checkpoint; "
+    modules = ", ".join(f"mqd_jax.experiment.{m}" for m in ("cli", "results", "plots", "sweep", "checkpoint"))
+    code = (f"import sys, mqd_jax, {modules}; "
             "print(sorted(m for m in sys.modules if m == 'envs' or m.startswith('envs.')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

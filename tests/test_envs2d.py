@@ -6,7 +6,7 @@ import pytest
 
 from envs import arena2d
 from envs.object2d import OBJECT_RADIUS, OBJECT_START
-from mqd_jax import registry
+from mqd_jax.core import registry
 
 
 def _action(*subs):

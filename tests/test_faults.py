@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from envs.obstacle2d import Obstacle2D
-from mqd_jax import Task, registry, run_mqd
+from mqd_jax import Task, run_mqd
+from mqd_jax.core import registry
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -16,7 +16,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from mqd_jax import cli, folders, results
+from mqd_jax.experiment import cli, folders, results
 
 RUN_FLAGS = ["--generations", "2", "--population", "8", "--capacity", "64", "--algorithm", "random"]
 SWEEP = ["sweep", "--tasks", "obstacle2d", "--algorithms", "mqd", "qd", "--seeds", "2", "--generations", "2",

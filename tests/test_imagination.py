@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Params, Validity, run_mqd
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.imagination import survivors
-from mqd_jax.repertoire import Repertoire
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.emitters.imagination import survivors
 
 T_DIST = 0.05
 K = 3

@@ -7,8 +7,11 @@ import optax
 import pytest
 
 from envs.obstacle2d import Obstacle2D
-from mqd_jax import Config, acquisition, model, registry, run_mqd
-from mqd_jax.repertoire import Repertoire
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import registry
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.emitters import acquisition
+from mqd_jax.surrogate import model
 
 POISON = 1e6
 

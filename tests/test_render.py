@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from envs import arena2d
-from mqd_jax import Config, cli, folders, registry
+from mqd_jax import Config
+from mqd_jax.core import registry
+from mqd_jax.experiment import cli, folders
 
 
 def test_a_2d_action_cut_at_a_time_gives_the_position_at_that_time():

@@ -5,8 +5,8 @@ import reference
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mqd_jax import neighbours
-from mqd_jax.repertoire import AddStatus, Repertoire, insert
+from mqd_jax.core import neighbours
+from mqd_jax.core.repertoire import AddStatus, Repertoire, insert
 
 NAMES = {AddStatus.SKIPPED: "skipped", AddStatus.ADDED: "added", AddStatus.REPLACED: "replaced",
          AddStatus.REJECTED: "rejected", AddStatus.DROPPED_FULL: "dropped"}

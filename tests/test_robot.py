@@ -8,7 +8,8 @@ import pytest
 from mujoco import rollout
 
 from envs import kuka
-from mqd_jax import Config, registry, run_mqd
+from mqd_jax import Config, run_mqd
+from mqd_jax.core import registry
 
 
 @pytest.fixture(scope="module")

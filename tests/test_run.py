@@ -6,8 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, init, registry, run_mqd
-from mqd_jax.run import generation
+from mqd_jax import Config, init, run_mqd
+from mqd_jax.core import registry
+from mqd_jax.core.run import generation
 
 
 @pytest.mark.parametrize("task", ["obstacle2d", "object2d"])

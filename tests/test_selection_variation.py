@@ -2,7 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mqd_jax import selection, variation
+from mqd_jax.core import selection, variation
 
 
 def test_probabilities_proportional_to_novelty():

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from mqd_jax.stats import bootstrap_interval, mann_whitney
+from mqd_jax.experiment.stats import bootstrap_interval, mann_whitney
 
 
 def test_u_counts_the_pairs_a_wins_with_ties_as_halves():

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import mqd_jax
-from mqd_jax import Config, Diverse, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Threshold, model, run_mqd
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.repertoire import Repertoire
+from mqd_jax import Config, Diverse, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Threshold, run_mqd
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.surrogate import model
 
 T_DIST = 0.02
 # The conftest task's behavior: 0.5 + A a.

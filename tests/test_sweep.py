@@ -11,9 +11,11 @@ import jax
 import numpy as np
 import pytest
 
-from mqd_jax import Config, cli, registry, results, sweep
-from mqd_jax.stats import mann_whitney
-from mqd_jax.sweep import run_batch, seed_keys
+from mqd_jax import Config
+from mqd_jax.core import registry
+from mqd_jax.experiment import cli, results, sweep
+from mqd_jax.experiment.stats import mann_whitney
+from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 TINY = dict(max_generations=6, population_size=16, capacity=128, archive_capacity=128)
 MODEL = dict(warmup_samples=40, num_batches=20)
@@ -78,7 +80,7 @@ _BATCH = textwrap.dedent("""
     if len(sys.argv) > 1:
         jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2, process_id=int(sys.argv[2]))
     from mqd_jax import Config
-    from mqd_jax.sweep import run_batch, seed_keys
+    from mqd_jax.experiment.sweep import run_batch, seed_keys
     states, m = run_batch(Config(max_generations=3, population_size=8, capacity=64, archive_capacity=64),
                           seed_keys(3))
     json.dump({"devices": jax.device_count(), "processes": jax.process_count(),

@@ -16,9 +16,11 @@ import numpy as np
 import pytest
 
 import mqd_jax
-from mqd_jax import Config, adapt, checkpoint, cli, diagnostics, folders, registry, results, run_mqd
-from mqd_jax.config import check_params
-from mqd_jax.sweep import grid, param_names, run_batch, seed_keys
+from mqd_jax import Config, adapt, run_mqd
+from mqd_jax.core import diagnostics, registry
+from mqd_jax.core.config import check_params
+from mqd_jax.experiment import checkpoint, cli, folders, results
+from mqd_jax.experiment.sweep import grid, param_names, run_batch, seed_keys
 
 
 def digest(folder):
@@ -176,7 +178,7 @@ def test_saving_a_batch_removes_the_tables_made_before_it(tmp_path):
 
 HOLD_LOCK = textwrap.dedent("""
     import sys, time
-    from mqd_jax import folders
+    from mqd_jax.experiment import folders
     with folders.lock(sys.argv[1]):
         print("locked", flush=True)
         time.sleep(600)

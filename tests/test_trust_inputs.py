@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 
 import mqd_jax
-from mqd_jax import Config, Task, checkpoint, cli, folders, plots, provenance, registry, results
-from mqd_jax.task import BEHAVIOR_DIMS
+from mqd_jax import Config, Task
+from mqd_jax.core import registry
+from mqd_jax.core.task import BEHAVIOR_DIMS
+from mqd_jax.experiment import checkpoint, cli, folders, plots, provenance, results
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64"]
@@ -90,7 +92,7 @@ def test_results_record_the_implementation_and_tables_refuse_to_mix_them(tmp_pat
     err = refused(sweep_argv(tmp_path, algorithms=("random",)), "obstacle2d_qd is stale (task: saved 'built-in")
     assert "now 'registry.register (plugin_tasks:make_reach)'" in err and "--rerun-stale" in err
     keys = np.asarray(jax.random.split(jax.random.PRNGKey(0), 2))
-    states, metrics = mqd_jax.sweep.run_batch(cfg, keys)
+    states, metrics = mqd_jax.experiment.sweep.run_batch(cfg, keys)
     results.save_runs(str(tmp_path / "by_hand"), cfg, keys, states, metrics, 1.0)
     for name in ("obstacle2d_qd.json", "obstacle2d_qd.npz"):  # a folder mixed by hand
         (tmp_path / "by_hand" / name).write_bytes((tmp_path / name).read_bytes())
@@ -150,7 +152,7 @@ def test_overwriting_batches_of_a_sweep_removes_the_tables_made_of_them_at_once(
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mqd_jax.sweep, "run_batch", interrupted)
+    monkeypatch.setattr(mqd_jax.experiment.sweep, "run_batch", interrupted)
     with pytest.raises(SystemExit):
         cli.main(sweep_argv(tmp_path, "--t-dist", "0.03", "--overwrite"))
     assert not (tmp_path / "obstacle2d_qd.json").exists()

@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Config, Task, model, registry, run_mqd
+from mqd_jax import Config, Task, run_mqd
+from mqd_jax.core import registry
+from mqd_jax.surrogate import model
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

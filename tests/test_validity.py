@@ -1,4 +1,4 @@
-"""The validity classifier (`mqd_jax.validity`) and how the acquisition rules read it: hand-computed cases,
+"""The validity classifier (`mqd_jax.surrogate.validity`) and how the acquisition rules read it: hand-computed cases,
 invariants against the run's own accounting, and the promise that a task without unusable rollouts runs exactly
 as without it."""
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from mqd_jax import IsoLine, ModelEmitter, Params, Steering, Task, Validity, run_mqd
-from mqd_jax.acquisition import Budgeted, Diverse, Judged, Threshold, ranking
-from mqd_jax.model_emitter import auc
-from mqd_jax.pursuit import Fallback
+from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, ranking
+from mqd_jax.emitters.model_emitter import auc
+from mqd_jax.emitters.pursuit import Fallback
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -8,7 +8,7 @@
 
 `run` and `sweep` print a progress line per chunk of generations and a final
 summary; every Config field has a flag (`--t-nov 0.05`, `--budgeted`). A
-results folder belongs to one config (`mqd_jax.folders`): another config is
+results folder belongs to one config (`mqd_jax.experiment.folders`): another config is
 refused unless `--overwrite`, and one command at a time writes it. Compiled
 programs are kept in a persistent cache (`compilation_cache`), so a second
 start of the same config skips compilation.
@@ -32,10 +32,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax import adaptation, algorithms, checkpoint, folders, plots, registry, results, sweep
-from mqd_jax.config import Config, upgraded
-from mqd_jax.provenance import provenance
-from mqd_jax.run import State, get_task
+from mqd_jax import adaptation
+from mqd_jax.core import algorithms, registry
+from mqd_jax.core.config import Config, upgraded
+from mqd_jax.core.run import State, get_task
+from mqd_jax.experiment import checkpoint, folders, plots, results, sweep
+from mqd_jax.experiment.provenance import provenance
 
 # Table II's columns, for `--preset`.
 COLUMNS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}

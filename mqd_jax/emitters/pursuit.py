@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax.checks import is_real
-from mqd_jax.emitters import Evaluated
-from mqd_jax.repertoire import AddStatus
+from mqd_jax.core.checks import is_real
+from mqd_jax.core.emitter import Evaluated
+from mqd_jax.core.repertoire import AddStatus
 
 
 @struct.dataclass

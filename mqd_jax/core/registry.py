@@ -1,7 +1,7 @@
 """Task names: the registry that `Config(task="name")` resolves through.
 
 `make(name)` builds a registered task; `register(name, factory)` adds a user's
-own (a callable returning a `mqd_jax.task.Task`). Tasks are built once per name
+own (a callable returning a `mqd_jax.core.task.Task`). Tasks are built once per name
 and options and cached, so a name always maps to the same object.
 
 The registry is filled without this package importing any task package:
@@ -34,7 +34,7 @@ from typing import Any
 
 import jax
 
-from mqd_jax.task import Task, check_task
+from mqd_jax.core.task import Task, check_task
 from mqd_jax.version import __version__
 
 ENTRY_POINT_GROUP = "mqd_jax.tasks"
@@ -111,7 +111,7 @@ def source(name: str) -> str:
     """
     if name not in _FACTORIES and len(_entry_points().get(name, ())) > 1:
         raise ValueError(f"task {name!r} is registered twice: by {_sources(name)}; choose one with "
-                         f"mqd_jax.registry.register({name!r}, factory, replace=True), or uninstall the other")
+                         f"mqd_jax.core.registry.register({name!r}, factory, replace=True), or uninstall the other")
     if not is_task(name):
         raise ValueError(f"unknown task {name!r}")
     return _sources(name)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import batching, neighbours
+from mqd_jax.core import batching, neighbours
 
 # Nearest pre-generation skills precomputed per candidate before the sequential rule (`insert`'s num_near).
 NUM_NEAR = 4
@@ -280,7 +280,7 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     prefix of C / 2^j slots (at least `min_prefix`) that holds every skill:
     their cost follows the repertoire's size, not C. Under `jax.vmap` the
     batch works on the prefix its largest repertoire needs, and its loops and
-    rare branches run once for the batch (`mqd_jax.batching`).
+    rare branches run once for the batch (`mqd_jax.core.batching`).
     """
     capacity, pop = rep.capacity, behaviors.shape[0]
     sizes = _prefix_sizes(capacity, min_prefix)

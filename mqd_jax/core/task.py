@@ -158,7 +158,7 @@ def _bounds(task: Task, name: str, field: str) -> np.ndarray:
 def check_task(task: Task, name: str) -> None:
     """Raises ValueError, naming the task and the field, unless its definition is usable.
 
-    Checked when a task is made (`mqd_jax.registry`) or given to a `Config`, before
+    Checked when a task is made (`mqd_jax.core.registry`) or given to a `Config`, before
     anything is traced or allocated: the action and behavior bounds are finite
     tuples of equal lengths with low < high in every dimension, the behavior space
     has a supported dimension (`BEHAVIOR_DIMS`), `quality_range` is a finite

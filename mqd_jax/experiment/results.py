@@ -10,7 +10,7 @@ One folder per sweep. For every task and algorithm run:
   rows past a seed's count are padding), and `meta` (the same config, keys and
   provenance, as a JSON string).
 * `<task>_mqd.msgpack` (M-QD only): the final states, as a checkpoint
-  (`mqd_jax.checkpoint`) with keys [S, 2]: what `mqd adapt` adapts.
+  (`mqd_jax.experiment.checkpoint`) with keys [S, 2]: what `mqd adapt` adapts.
 
 `mqd adapt` adds `adaptation.json` ({task: {"source": the SHA-256 of the
 `<task>_mqd.msgpack` it adapted, "config", "keys", "provenance", "methods":
@@ -18,9 +18,9 @@ One folder per sweep. For every task and algorithm run:
 markdown and PNG built from these files only, so a folder can be copied and
 re-tabulated anywhere.
 
-Every JSON and npz file carries its checksum (`mqd_jax.folders`), verified on
+Every JSON and npz file carries its checksum (`mqd_jax.experiment.folders`), verified on
 every read; each batch also records its `implementation`: the mqd-jax version
-and which implementation of the task ran (`mqd_jax.registry.source`).
+and which implementation of the task ran (`mqd_jax.core.registry.source`).
 
 A folder never mixes configs: the batches of one task share their config (but
 for the algorithm), their seed keys and their implementation (`scan` finds
@@ -42,12 +42,21 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax import algorithms, checkpoint, registry
-from mqd_jax.config import Config, upgraded
-from mqd_jax.folders import Damaged, differences, read_json, read_npz, write_atomically, write_json, write_npz
-from mqd_jax.provenance import machine, provenance
-from mqd_jax.run import State, get_task
-from mqd_jax.stats import mann_whitney
+from mqd_jax.core import algorithms, registry
+from mqd_jax.core.config import Config, upgraded
+from mqd_jax.core.run import State, get_task
+from mqd_jax.experiment import checkpoint
+from mqd_jax.experiment.folders import (
+    Damaged,
+    differences,
+    read_json,
+    read_npz,
+    write_atomically,
+    write_json,
+    write_npz,
+)
+from mqd_jax.experiment.provenance import machine, provenance
+from mqd_jax.experiment.stats import mann_whitney
 from mqd_jax.version import __version__
 
 NAMES = {"mqd": "M-QD", "mqd-paper": "M-QD (paper's filter)", "qd": "QD", "random": "RANDOM"}
@@ -230,12 +239,12 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
 
     Raises ValueError if `out` holds batches that conflict with it (`conflicts`),
     or if `cfg` is not a preset of a registered task (a folder's files are read
-    back by name; save other runs with `mqd_jax.checkpoint.save`); removes the
+    back by name; save other runs with `mqd_jax.experiment.checkpoint.save`); removes the
     tables and figures made from the folder's earlier results.
     """
     if cfg.algorithm not in algorithms.names() or registry.name_of(cfg.task) is None:
         raise ValueError(f"a results folder holds the algorithms {algorithms.names()} of registered tasks, not "
-                         f"{cfg.algorithm!r} on {cfg.task!r}: save such runs with mqd_jax.checkpoint.save")
+                         f"{cfg.algorithm!r} on {cfg.task!r}: save such runs with mqd_jax.experiment.checkpoint.save")
     clash = conflicts(out, [(cfg, keys)])
     if clash:
         raise ValueError(f"{out!r} refused: {describe(clash)}")

@@ -10,7 +10,7 @@ a gradient transformation).
                                                              (or Budgeted(pool_factor) when budgeted)
 
 Each preset's defaults are in its signature: the model's are Table II's 2D column (`TABLE_II` holds both
-columns). They are registered with `mqd_jax.algorithms`: a `Config` names a preset as `algorithm="mqd"`
+columns). They are registered with `mqd_jax.core.algorithms`: a `Config` names a preset as `algorithm="mqd"`
 with `algorithm_options={"pool_factor": 16}`, checked against the signature (`algorithms.options`,
 `algorithms.build`); `k` is the run's (`Config.k`), passed by the config.
 "mqd" is the best composition measured (docs/results.md); "mqd-paper" reproduces the paper's Algorithm 1.
@@ -18,12 +18,12 @@ with `algorithm_options={"pool_factor": 16}`, checked against the signature (`al
 
 from __future__ import annotations
 
-from mqd_jax import algorithms
-from mqd_jax.acquisition import Budgeted, Diverse, Threshold
-from mqd_jax.emitter import Emitter
-from mqd_jax.emitters import IsoLine, Uniform
-from mqd_jax.model_emitter import Fallback, ModelEmitter
-from mqd_jax.steering import Steering
+from mqd_jax.core import algorithms
+from mqd_jax.core.emitter import Emitter
+from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
+from mqd_jax.emitters.baselines import IsoLine, Uniform
+from mqd_jax.emitters.model_emitter import Fallback, ModelEmitter
+from mqd_jax.emitters.steering import Steering
 
 # Table II: the model's settings in the paper's two columns (the 2D column is every preset's default).
 TABLE_II = {

@@ -1,4 +1,4 @@
-"""The paper's baseline emitters: `Uniform` (RANDOM) and `IsoLine` (QD) (the protocol: `mqd_jax.emitter`)."""
+"""The paper's baseline emitters: `Uniform` (RANDOM) and `IsoLine` (QD) (the protocol: `mqd_jax.core.emitter`)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import selection, variation
-from mqd_jax.checks import check_traced, is_real
-from mqd_jax.emitter import Emitter, Proposal, action_bounds
-from mqd_jax.params import Params
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.task import Task
+from mqd_jax.core import selection, variation
+from mqd_jax.core.checks import check_traced, is_real
+from mqd_jax.core.emitter import Emitter, Proposal, action_bounds
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
 
 
 def _uniform_key(key: jax.Array) -> jax.Array:

@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 
 from mqd_jax.adaptation import METHODS
-from mqd_jax.folders import write_atomically
-from mqd_jax.results import NAMES, Runs
-from mqd_jax.task import Task
+from mqd_jax.core.task import Task
+from mqd_jax.experiment.folders import write_atomically
+from mqd_jax.experiment.results import NAMES, Runs
 
 
 def pyplot() -> Any:

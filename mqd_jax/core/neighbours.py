@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import batching
+from mqd_jax.core import batching
 
 _BLOCK = 32
 

@@ -1,6 +1,6 @@
 """One generation as a pure function of explicit state, and a whole run as a scan of it.
 
-A run searches with an emitter (`mqd_jax.emitters`: a preset the config names,
+A run searches with an emitter (`mqd_jax.core.emitter`; a preset the config names,
 or any composition) on a task, in named stages:
 
     propose -> evaluate -> insert -> archive -> coverage -> emitter update -> metrics
@@ -20,13 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mqd_jax import archive as archive_lib
-from mqd_jax import coverage, diagnostics, registry, repertoire
-from mqd_jax.config import Config, check_params
-from mqd_jax.emitters import Evaluated, Proposal
-from mqd_jax.params import Params
-from mqd_jax.repertoire import AddStatus
-from mqd_jax.task import Task, check_outputs
+from mqd_jax.core import archive as archive_lib
+from mqd_jax.core import coverage, diagnostics, registry, repertoire
+from mqd_jax.core.config import Config, check_params
+from mqd_jax.core.emitter import Evaluated, Proposal
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import AddStatus
+from mqd_jax.core.task import Task, check_outputs
 
 # The metrics of every generation (scalars; see `run_mqd`) and their dtypes; the emitter adds its own
 # (`metric_dtypes`). A skipped generation reports zeros of these without tracing a generation to find out.
@@ -74,7 +74,7 @@ def stage(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
 
 
 def get_task(cfg: Config) -> Task:
-    """The task of `cfg`: its Task, or the one `mqd_jax.registry` makes from its name."""
+    """The task of `cfg`: its Task, or the one `mqd_jax.core.registry` makes from its name."""
     return registry.make(cfg.task) if isinstance(cfg.task, str) else cfg.task
 
 
@@ -380,7 +380,7 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
     """A whole run: `cfg.max_generations` generations from an empty repertoire, with any emitter.
 
     The search is the emitter `cfg.algorithm` gives: a preset's name ("mqd",
-    "qd", "random") or any `Emitter` composition (see `mqd_jax.emitters`).
+    "qd", "random") or any `Emitter` composition (see `mqd_jax.core.emitter`).
 
     Args:
       key: PRNG key; the same key and config give the same result on a backend.

@@ -12,7 +12,7 @@ parameter with a leading [E] axis; the members are applied and trained with
 `jax.vmap`. `predict` is the members' mean; `predict_members` gives each
 member's prediction, whose spread measures the model's uncertainty.
 
-Training (`mqd_jax.model_emitter` calls it after every generation once warm-up
+Training (`mqd_jax.emitters.model_emitter` calls it after every generation once warm-up
 is over): `num_batches` Adam steps on the mean-squared error in normalized
 units, each member on its own `batch_size` rows drawn uniformly (with
 replacement) from the training data (the repertoire, or a buffer of rollouts).
@@ -28,9 +28,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from mqd_jax.archive import Archive
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.task import Task
+from mqd_jax.core.archive import Archive
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
 
 
 class MLP(nn.Module):
@@ -104,7 +104,7 @@ def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1,
          out_size: int | None = None) -> ModelState:
     """Random parameters of `ensemble_size` members (Flax's default initialisers, one key each) and a fresh Adam
     state. A single member is initialised from `key` itself. `out_size`: the outputs, d + 1 (phi) unless given
-    (a network of the same kind that predicts something else, as `mqd_jax.validity`'s classifier)."""
+    (a network of the same kind that predicts something else, as `mqd_jax.surrogate.validity`'s classifier)."""
     net = network(hidden_size, task) if out_size is None else MLP(hidden_size=hidden_size, out_size=out_size)
     x = jnp.zeros((1, task.action_dim), jnp.float32)
     keys = key[None] if ensemble_size == 1 else jax.random.split(key, ensemble_size)

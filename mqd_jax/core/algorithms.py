@@ -1,7 +1,7 @@
 """Algorithm names: the registry that `Config(algorithm="name")` resolves through, as tasks resolve through
-`mqd_jax.registry`.
+`mqd_jax.core.registry`.
 
-An algorithm is a function of keyword options that returns an `Emitter` (`mqd_jax.presets` registers "mqd",
+An algorithm is a function of keyword options that returns an `Emitter` (`mqd_jax.emitters.presets` registers "mqd",
 "mqd-paper", "qd" and "random"; `register(name, function)` adds one). Its options are its keyword parameters,
 their defaults in its signature; `CONTEXT` names those the config fills in itself (`k`: `Config.k`). An
 algorithm may say which of its options Table II sets per column (`table_ii`).
@@ -13,7 +13,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from mqd_jax.emitter import Emitter
+from mqd_jax.core.emitter import Emitter
 
 # Options that are not the user's to give: the config passes its own.
 CONTEXT = ("k",)

@@ -38,14 +38,14 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax import selection
-from mqd_jax.checks import is_real
-from mqd_jax.emitters import action_bounds
-from mqd_jax.params import Params
-from mqd_jax.pursuit import Fallback
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.task import Task
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core import selection
+from mqd_jax.core.checks import is_real
+from mqd_jax.core.emitter import action_bounds
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
+from mqd_jax.emitters.pursuit import Fallback
 
 # actions [m, n] -> the model's behavior Jacobians [m, d, n] (real units) at them.
 Jacobian = Callable[[jax.Array], jax.Array]

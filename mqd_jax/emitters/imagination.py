@@ -23,13 +23,13 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.checks import is_int
-from mqd_jax.emitters import Proposal
-from mqd_jax.model_emitter import ModelEmitter, ModelEmitterState
-from mqd_jax.params import Params
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.task import Task
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.checks import is_int
+from mqd_jax.core.emitter import Proposal
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
+from mqd_jax.emitters.model_emitter import ModelEmitter, ModelEmitterState
 
 
 def survivors(written: jax.Array, capacity: int) -> jax.Array:

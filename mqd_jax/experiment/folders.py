@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from flax import serialization
 
-from mqd_jax.provenance import provenance
+from mqd_jax.experiment.provenance import provenance
 
 MANIFEST = "mqd.json"
 LOCK = ".mqd.lock"

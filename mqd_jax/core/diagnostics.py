@@ -15,8 +15,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mqd_jax.config import Config
-from mqd_jax.task import Task
+from mqd_jax.core.config import Config
+from mqd_jax.core.task import Task
 
 
 class RunWarning(UserWarning):

@@ -9,7 +9,7 @@ unusable (measured on Place: 42% of `"mqd"`'s rollouts; docs/results.md).
 
 `Validity` keeps a ring buffer of the emitter's rolled-out actions with
 whether each was usable, fits a network of the forward model's kind (one
-hidden layer, tanh output; `mqd_jax.model.fit`) to +1 (usable) and -1
+hidden layer, tanh output; `mqd_jax.surrogate.model.fit`) to +1 (usable) and -1
 (unusable) by mean-squared error, and judges a candidate's probability of a
 usable rollout as (output + 1) / 2, in [0, 1] (the squared error of a
 probability is the Brier score, a proper scoring rule, so the fit estimates
@@ -26,10 +26,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import archive as archive_lib
-from mqd_jax import model
-from mqd_jax.checks import is_int
-from mqd_jax.task import Task
+from mqd_jax.core import archive as archive_lib
+from mqd_jax.core.checks import is_int
+from mqd_jax.core.task import Task
+from mqd_jax.surrogate import model
 
 
 @struct.dataclass

@@ -30,11 +30,11 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from mqd_jax import diagnostics
-from mqd_jax.checks import is_int
-from mqd_jax.config import Config, check_params
-from mqd_jax.params import Params
-from mqd_jax.run import State, get_task, init, run_generations
+from mqd_jax.core import diagnostics
+from mqd_jax.core.checks import is_int
+from mqd_jax.core.config import Config, check_params
+from mqd_jax.core.params import Params
+from mqd_jax.core.run import State, get_task, init, run_generations
 
 Metrics = dict[str, np.ndarray]
 

@@ -2,9 +2,9 @@
 are worth a rollout (paper, "Model-Based Quality-Diversity Search", Algorithm 1).
 
 `ModelEmitter(inner, acquisition)` asks `inner` for a pool of candidates,
-predicts their behaviors and qualities with its model (`mqd_jax.model`, one
+predicts their behaviors and qualities with its model (`mqd_jax.surrogate.model`, one
 network or a vmapped ensemble), scores them against the repertoire and lets
-the acquisition rule choose (`mqd_jax.acquisition`: the paper's `Threshold`
+the acquisition rule choose (`mqd_jax.emitters.acquisition`: the paper's `Threshold`
 filter, `Budgeted` ranking or `Diverse` batch selection). Until
 `warmup_samples` of its candidates were rolled out the rule passes the inner
 emitter's proposal through. After every generation past warm-up it trains the
@@ -53,17 +53,18 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax import acquisition, model
-from mqd_jax import archive as archive_lib
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax import steering as steering_lib
-from mqd_jax import validity as validity_lib
-from mqd_jax.checks import check_traced, is_int, is_real
-from mqd_jax.emitters import Emitter, Evaluated, Proposal
-from mqd_jax.params import Params
-from mqd_jax.pursuit import Fallback, running_average
-from mqd_jax.repertoire import AddStatus, Repertoire
-from mqd_jax.task import Task
+from mqd_jax.core import archive as archive_lib
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.checks import check_traced, is_int, is_real
+from mqd_jax.core.emitter import Emitter, Evaluated, Proposal
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import AddStatus, Repertoire
+from mqd_jax.core.task import Task
+from mqd_jax.emitters import acquisition
+from mqd_jax.emitters import steering as steering_lib
+from mqd_jax.emitters.pursuit import Fallback, running_average
+from mqd_jax.surrogate import model
+from mqd_jax.surrogate import validity as validity_lib
 
 _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
             "opener_auc": jnp.float32}

@@ -11,7 +11,7 @@ its own (any pytree, e.g. a `flax.struct` dataclass):
 Static settings are the dataclass's fields; traced parameters (float32 scalars a
 run may `vmap` over) are the emitter's own: `default_params()` gives them from
 its fields, `check_params` refuses bad concrete values, and `propose`/`update`
-read them as `params.emitter.<name>` (`mqd_jax.params.Params`; the engine's
+read them as `params.emitter.<name>` (`mqd_jax.core.params.Params`; the engine's
 `params.t_dist` beside them). `check_run(population_size, max_generations)`
 refuses, before anything is traced, a run the emitter cannot serve.
 
@@ -20,10 +20,10 @@ refuses, before anything is traced, a run the emitter cannot serve.
 inserted, and returns the scalars named by `metrics()` (they join a run's
 per-generation metrics). All three are traced inside one jitted generation:
 they must be jittable and vmappable (no Python branching on array values).
-Emitters compose by wrapping: `mqd_jax.model_emitter.ModelEmitter(IsoLine())`
+Emitters compose by wrapping: `mqd_jax.emitters.model_emitter.ModelEmitter(IsoLine())`
 filters or ranks what the inner emitter proposes.
 
-This module holds the protocol; `mqd_jax.emitters` the paper's baselines, `Uniform`
+This module holds the protocol; `mqd_jax.emitters.baselines` the paper's baselines, `Uniform`
 (RANDOM) and `IsoLine` (QD).
 """
 
@@ -36,9 +36,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax.params import Params
-from mqd_jax.repertoire import Repertoire
-from mqd_jax.task import Task
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
 
 
 @struct.dataclass

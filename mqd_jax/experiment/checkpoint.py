@@ -15,7 +15,7 @@ M-QD's model outside the emitter's state; 1 to 4 with one network where the
 model is now an ensemble) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
-of runs (`mqd_jax.sweep`) saves and loads the same way, with keys [S, 2] and
+of runs (`mqd_jax.experiment.sweep`) saves and loads the same way, with keys [S, 2] and
 every state array carrying a leading [S] axis.
 """
 
@@ -31,13 +31,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from mqd_jax import diagnostics
-from mqd_jax.checks import is_int
-from mqd_jax.config import Config, check_params, upgraded
-from mqd_jax.folders import differences, write_atomically
-from mqd_jax.params import Params
-from mqd_jax.provenance import provenance
-from mqd_jax.run import State, check_state, get_task, init, run_generations
+from mqd_jax.core import diagnostics
+from mqd_jax.core.checks import is_int
+from mqd_jax.core.config import Config, check_params, upgraded
+from mqd_jax.core.params import Params
+from mqd_jax.core.run import State, check_state, get_task, init, run_generations
+from mqd_jax.experiment.folders import differences, write_atomically
+from mqd_jax.experiment.provenance import provenance
 
 FORMAT = 5
 Metrics = dict[str, np.ndarray]

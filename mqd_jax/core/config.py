@@ -7,10 +7,10 @@ sizes, the novelty's k, `t_dist`, the generations and the coverage grid. It is
 a frozen, hashable dataclass, so it can be a static argument of `jax.jit`;
 every field is validated at construction (and therefore also through
 `dataclasses.replace`), before anything is traced: a preset's options against
-its function's signature (`mqd_jax.presets`), the emitter against the run's
+its function's signature (`mqd_jax.emitters.presets`), the emitter against the run's
 size (`Emitter.check_run`).
 
-The traced parameters (`mqd_jax.params.Params`, `Config.params()`) are the
+The traced parameters (`mqd_jax.core.params.Params`, `Config.params()`) are the
 engine's `t_dist` and the emitter's own (`Emitter.default_params()`), so one
 compiled run can be `jax.vmap`-ed over them.
 """
@@ -25,11 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mqd_jax import algorithms, registry
-from mqd_jax.checks import check_traced, is_int, is_real
-from mqd_jax.emitter import Emitter
-from mqd_jax.params import Params
-from mqd_jax.task import Task, check_task
+from mqd_jax.core import algorithms, registry
+from mqd_jax.core.checks import check_traced, is_int, is_real
+from mqd_jax.core.emitter import Emitter
+from mqd_jax.core.params import Params
+from mqd_jax.core.task import Task, check_task
 
 
 def check_params(params: Params, cfg: Config) -> None:
@@ -70,10 +70,10 @@ class Config:
     """Every static setting of a run. Defaults are Table II's 2D column.
 
     Attributes:
-      task: a registered task's name (`mqd_jax.registry`) or a `Task`.
-      algorithm: a registered algorithm's name (`mqd_jax.algorithms`; the presets "mqd", "mqd-paper", "qd",
+      task: a registered task's name (`mqd_jax.core.registry`) or a `Task`.
+      algorithm: a registered algorithm's name (`mqd_jax.core.algorithms`; the presets "mqd", "mqd-paper", "qd",
         "random") or any `Emitter`.
-      algorithm_options: its options (a dict, `mqd_jax.presets`: `algorithms.options(name)` lists them with
+      algorithm_options: its options (a dict, `mqd_jax.emitters.presets`: `algorithms.options(name)` lists them with
         their defaults); held as the sorted pairs that differ from the defaults, so configs that mean the same
         run compare, hash and save the same.
       max_generations, population_size: the run's length and candidates per generation.

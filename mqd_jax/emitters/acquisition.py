@@ -11,7 +11,7 @@ With fewer than K skills in the repertoire the means run over those there are;
 with none, both scores are +inf. `Judged` holds these with the predictions and
 the ensemble's spread. A rule is a frozen dataclass with `pool_size(num)` (how
 many candidates it wants to choose `num` from) and `select`, used by
-`mqd_jax.model_emitter.ModelEmitter`:
+`mqd_jax.emitters.model_emitter.ModelEmitter`:
 
 * `Threshold`: the paper's Algorithm 1 filter;
 * `Budgeted`: a fixed number from the top of a ranked pool;
@@ -20,7 +20,7 @@ many candidates it wants to choose `num` from) and `select`, used by
   of those chosen, so one generation does not spend rollouts on near-duplicates.
 
 Ranking rules return their rows best first (`ModelEmitter`'s fallback keeps a
-prefix of them). With a validity classifier (`mqd_jax.validity`), the rules
+prefix of them). With a validity classifier (`mqd_jax.surrogate.validity`), the rules
 read its judgement: `Threshold` rolls out none of the candidates it judges
 likely unusable (probability below `PLAUSIBLE`), `Budgeted` and `Diverse`
 rank them after the likely usable ones of their tier (a candidate predicted
@@ -38,11 +38,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mqd_jax import neighbours as neighbours_lib
-from mqd_jax import repertoire as repertoire_lib
-from mqd_jax.checks import check_traced, is_int, is_real
-from mqd_jax.params import Params
-from mqd_jax.repertoire import Repertoire
+from mqd_jax.core import neighbours as neighbours_lib
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.checks import check_traced, is_int, is_real
+from mqd_jax.core.params import Params
+from mqd_jax.core.repertoire import Repertoire
 
 # A candidate whose probability of a usable rollout is below this is judged likely unusable.
 PLAUSIBLE = 0.5
@@ -85,7 +85,7 @@ class Judged:
         the K nearest (novelty, improvement, neighbours) by two searches, so
         that a rule reading none of one's fields costs nothing of it (XLA
         drops unused work: `Diverse` with one neighbour reads the first only).
-      validity: [N] the probability of a usable rollout (`mqd_jax.validity`), or None (all judged usable).
+      validity: [N] the probability of a usable rollout (`mqd_jax.surrogate.validity`), or None (all judged usable).
       parent_novelty: [N] the repertoire's novelty of each candidate's parent (the skill it was varied from; NaN
         for a candidate without one), or None where the inner emitter names no parents.
     """

@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from mqd_jax.checks import is_int
+from mqd_jax.core.checks import is_int
 
 
 def mann_whitney(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
