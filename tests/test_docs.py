@@ -55,3 +55,17 @@ def test_toml_blocks_parse():
     for path in DOCS:
         for block in blocks(path, "toml"):
             assert tomllib.loads(block)
+
+
+CITED = re.compile(r"(?:docs/)?((?:data|figures)/[\w.\-]+\.(?:md|json|png|gif))")
+TEMPLATE = re.compile(r"_(T|vN)_|_vN\.")  # a command's path with a placeholder (the task T, version N)
+
+
+def test_every_data_file_and_figure_is_cited_and_every_citation_exists():
+    """docs/data and docs/figures hold what the documents cite, and nothing else (earlier data: git history)."""
+    texts = [p.read_text() for p in [*DOCS, ROOT / "CHANGELOG.md"]]
+    cited = {m for text in texts for m in CITED.findall(text) if not TEMPLATE.search(m)}
+    held = {str(p.relative_to(ROOT / "docs")) for folder in ("data", "figures")
+            for p in (ROOT / "docs" / folder).iterdir()}
+    assert not sorted(cited - held), "cited but missing"
+    assert not sorted(held - cited), "held but cited nowhere"
