@@ -49,9 +49,10 @@ def main() -> None:
     }
     emitter = cfg.emitter
     if isinstance(emitter, ModelEmitter):
-        stages[f"model training ({emitter.num_batches} Adam steps)"] = jax.jit(
-            lambda s: model.train(s.emitter.model, key, s.repertoire, task, params.emitter.learning_rate,
-                                  emitter.batch_size, emitter.num_batches))
+        surrogate = emitter.surrogate
+        stages[f"model training ({surrogate.num_batches} Adam steps)"] = jax.jit(
+            lambda s: model.train(s.emitter.surrogate.model, key, s.repertoire, task,
+                                  params.emitter.surrogate.learning_rate, surrogate.batch_size, surrogate.num_batches))
     print(f"{args.task}, {args.algorithm}, repertoire of {int(state.repertoire.count)} skills after {args.grow} "
           f"generations (capacity {cfg.capacity}); {report.machine()}; median of {args.repeats} calls.\n")
     print("| stage | ms |\n|---|---|")

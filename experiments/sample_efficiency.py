@@ -51,24 +51,24 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax import Config, ModelEmitter
+from mqd_jax import Config, Surrogate
 from mqd_jax.core import algorithms, registry
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
-from mqd_jax.emitters.model_emitter import ModelEmitterState
 from mqd_jax.experiment import results, stats
 from mqd_jax.experiment.sweep import run_batch, seed_keys
+from mqd_jax.surrogate.surrogate import SurrogateState
 
 
 @dataclasses.dataclass(frozen=True)
-class Oracle(ModelEmitter):
-    """`ModelEmitter` whose "members" are the task's true outcomes (one member; NaN where invalid).
+class Oracle(Surrogate):
+    """A surrogate whose "members" are the task's true outcomes (one member; NaN where invalid).
 
     For deterministic tasks with cheap rollouts only: it rolls out its whole pool inside the
     generation to judge it, so it is a reference, not a method."""
 
-    def members(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> jax.Array:
+    def members(self, state: SurrogateState, actions: jax.Array, task: Task) -> jax.Array:
         behaviors, qualities, valid = task.evaluate(actions, jax.random.PRNGKey(0))
         outcome = jnp.concatenate([behaviors, qualities[:, None]], axis=-1).astype(jnp.float32)
         return jnp.where(valid[:, None], outcome, jnp.nan)[None]
@@ -172,9 +172,7 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     try:
         cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **length)
         if name == "oracle":  # the preset's acquisition fed the true outcomes
-            mqd = cfg.emitter
-            oracle = Oracle(**{f.name: getattr(mqd, f.name) for f in dataclasses.fields(ModelEmitter)}
-                            | dict(anchoring="none", fallback=None, ensemble_size=1, num_batches=1))
+            oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1), fallback=None)
             cfg = dataclasses.replace(cfg, algorithm=oracle, algorithm_options={})
     except ValueError as error:
         raise SystemExit(f"{spec!r}: {error}") from None

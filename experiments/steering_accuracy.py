@@ -37,7 +37,8 @@ def accuracy(task_name: str, generations: int, seed: int) -> dict[float, tuple[f
     k_parents, k_direction, k_rollout = jax.random.split(jax.random.PRNGKey(1000 + seed), 3)
     parents = selection.sample_parents(k_parents, rep.novelty, rep.valid, CHILDREN)
     actions, behaviors = rep.actions[parents], rep.behaviors[parents]
-    jacobians = jax.vmap(jax.jacfwd(lambda a: emitter.predict(state.emitter, a, task)[0]))(actions)
+    surrogate, known = emitter.surrogate, state.emitter.surrogate
+    jacobians = jax.vmap(jax.jacfwd(lambda a: surrogate.predict(known, a, task)[0]))(actions)
     direction = jax.random.normal(k_direction, behaviors.shape)
     direction = direction / jnp.linalg.norm(direction, axis=1, keepdims=True)
     out = {}

@@ -16,9 +16,10 @@ from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
-from mqd_jax.emitters.model_emitter import _share, opener_auc
+from mqd_jax.emitters.model_emitter import ModelEmitterState, _share, opener_auc
 from mqd_jax.emitters.pursuit import Fallback, FallbackState
 from mqd_jax.surrogate import model
+from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState
 
 
 def repertoire_of(behaviors, qualities, actions=None, capacity=8):
@@ -172,7 +173,7 @@ def test_ensemble_members_train_as_independent_networks(linear_task):
 
 
 @dataclasses.dataclass(frozen=True)
-class _Known(ModelEmitter):
+class _Known(Surrogate):
     """Members with known predictions: member e says (a0 + e, a1 - e, a2) for action a."""
 
     def members(self, state, actions, task):
@@ -180,11 +181,24 @@ class _Known(ModelEmitter):
         return actions[None] + shift
 
 
+def knowing(acquisition, k, **surrogate):
+    """A model emitter whose surrogate is `_Known(**surrogate)`."""
+    return ModelEmitter(IsoLine(), acquisition, _Known(**surrogate), k=k)
+
+
+def anchored(emitter, **changes):
+    """`emitter` with its surrogate's anchoring settings changed."""
+    return dataclasses.replace(emitter, surrogate=dataclasses.replace(emitter.surrogate, **changes))
+
+
+NO_STATE = ModelEmitterState(surrogate=SurrogateState(model=None), inner=(), evaluations=jnp.int32(0))
+
+
 def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
-    emitter = _Known(IsoLine(), Diverse(), anchoring="always", anchor="nearest", k=1)
-    got = emitter.judge(None, pool, rep, linear_task)
+    emitter = knowing(Diverse(), 1, anchoring="always", anchor="nearest")
+    got = emitter.judge(NO_STATE, pool, rep, linear_task)
     for i, a in enumerate(np.asarray(pool)):
         j = int(np.argmin([np.sum((a - r) ** 2) for r in np.asarray(rep.actions[:2])]))  # action box [-1, 1]: x1
         members = [np.array([a[0] + e, a[1] - e, a[2]]) - np.array([rep.actions[j, 0] + e, rep.actions[j, 1] - e,
@@ -196,11 +210,11 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     # Anchored differences cancel the members' offsets: they agree (spread 0); not anchored they disagree by 1/2
     # on each behavior axis around the mean.
     np.testing.assert_allclose(got.spread, 0.0, atol=1e-6)
-    plain = dataclasses.replace(emitter, anchoring="none").judge(None, pool, rep, linear_task)
+    plain = anchored(emitter, anchoring="none").judge(NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(plain.behaviors, np.asarray(pool)[:, :2] + [0.5, -0.5], rtol=1e-6)
     np.testing.assert_allclose(plain.spread, 0.5, rtol=1e-6)
     # An empty repertoire has nothing to anchor at: the plain prediction.
-    empty = emitter.judge(None, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
+    empty = emitter.judge(NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
     np.testing.assert_allclose(empty.behaviors, plain.behaviors)
 
 
@@ -212,8 +226,8 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     # binary fractions, so that the first two rows' ties (slots 0 and 1; 0 and 3) are exact.
     pool = jnp.array([[0.125, 0.5, 0.0], [0.0, 0.75, 0.0], [-0.375, 1.0, 0.0], [0.25, -0.25, 0.0],
                       [-0.5, 0.25, 0.0]])
-    emitter = _Known(IsoLine(), Diverse(2), anchoring="none", k=3)
-    got = emitter.judge(None, pool, rep, linear_task)
+    emitter = knowing(Diverse(2), 3, anchoring="none")
+    got = emitter.judge(NO_STATE, pool, rep, linear_task)
     b = np.asarray(pool)[:, :2] + [0.5, -0.5]
     d = np.sqrt(((b[:, None] - np.asarray(rep.behaviors[:4])[None]) ** 2).sum(-1))
     nearest = d.argmin(1)  # the first of equal minima: the lower slot
@@ -229,37 +243,37 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     kept = np.sqrt(((np.asarray(proposal.info["predicted_behaviors"])[:, None] - np.asarray(rep.behaviors[:4])[None])
                     ** 2).sum(-1)).min(1)
     np.testing.assert_allclose(proposal.info["predicted_distance"], kept, rtol=1e-6)
-    empty = emitter.judge(None, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
+    empty = emitter.judge(NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
     assert np.all(np.isinf(empty.distance)) and np.all(np.asarray(empty.nearest_quality) == 0.0)
 
 
 def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
-    emitter = _Known(IsoLine(), Diverse(), anchoring="always", k=1)
-    assert emitter.anchor == "parent"
+    emitter = knowing(Diverse(), 1, anchoring="always")
+    assert emitter.surrogate.anchor == "parent"
     # Row 0's parent is the skill farther from it in action space (slot 1), row 1's slot 0; row 2 has none.
-    got = emitter.judge(None, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
+    got = emitter.judge(NO_STATE, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
     for i, j in ((0, 1), (1, 0)):
         a, p = np.asarray(pool[i]), np.asarray(rep.actions[j])
         # The members' offsets cancel: b(parent) + (a - parent) on the behavior axes, q(parent) + a2 - p2.
         np.testing.assert_allclose(got.behaviors[i], np.asarray(rep.behaviors[j]) + (a - p)[:2], rtol=1e-6)
         np.testing.assert_allclose(got.qualities[i], float(rep.qualities[j]) + a[2] - p[2], rtol=1e-6)
-    plain = dataclasses.replace(emitter, anchoring="none").judge(None, pool, rep, linear_task)
+    plain = anchored(emitter, anchoring="none").judge(NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(got.behaviors[2], plain.behaviors[2])  # no parent: the plain prediction
     # The parents' novelty, as the repertoire holds it; NaN without a parent, None where no parents are named.
     novel = rep.replace(novelty=rep.novelty.at[:2].set(jnp.array([0.25, 0.75])))
-    np.testing.assert_array_equal(emitter.judge(None, pool, novel, linear_task, parents=jnp.array([1, 0, -1]))
+    np.testing.assert_array_equal(emitter.judge(NO_STATE, pool, novel, linear_task, parents=jnp.array([1, 0, -1]))
                                   .parent_novelty, [0.75, 0.25, np.nan])
-    assert emitter.judge(None, pool, novel, linear_task).parent_novelty is None
+    assert emitter.judge(NO_STATE, pool, novel, linear_task).parent_novelty is None
     # An inner emitter that names no parents: anchored at the nearest skill, as anchor="nearest".
-    nearest = dataclasses.replace(emitter, anchor="nearest").judge(None, pool, rep, linear_task)
-    np.testing.assert_allclose(emitter.judge(None, pool, rep, linear_task).behaviors, nearest.behaviors)
+    nearest = anchored(emitter, anchor="nearest").judge(NO_STATE, pool, rep, linear_task)
+    np.testing.assert_allclose(emitter.judge(NO_STATE, pool, rep, linear_task).behaviors, nearest.behaviors)
     assert not np.allclose(got.behaviors[:2], nearest.behaviors[:2])
-    with pytest.raises(ValueError, match=r"anchoring='nearest' was split in version 0.6"):
-        ModelEmitter(IsoLine(), anchoring="nearest")
-    with pytest.raises(ValueError, match=r"ModelEmitter\.anchor="):
-        ModelEmitter(IsoLine(), anchor="first")
+    with pytest.raises(ValueError, match=r"Surrogate\.anchoring='nearest' is invalid"):
+        Surrogate(anchoring="nearest")
+    with pytest.raises(ValueError, match=r"Surrogate\.anchor="):
+        Surrogate(anchor="first")
 
 
 def test_greedy_diverse_by_hand():
@@ -396,16 +410,16 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     cfg = tiny(algorithm="mqd", warmup_samples=48, num_batches=5, pool_factor=3, ensemble_size=2, optimism=0.5,
                steering_share=0.3)
     assert cfg.emitter == ModelEmitter(
-        IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1), k=cfg.k,
-        hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, warmup_samples=48, anchoring="auto",
-        anchor="parent", fallback=Fallback(), steering=Steering(share=0.3))
+        IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1),
+        Surrogate(hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, anchoring="auto", anchor="parent"),
+        k=cfg.k, warmup_samples=48, fallback=Fallback(), steering=Steering(share=0.3))
 
     def changed(**options):
         return dataclasses.replace(cfg, algorithm_options={**cfg.options, **options}).emitter
 
     assert changed(wide_scale=1.0).inner == IsoLine()  # version 0.8's
     assert changed(wide_scale=3.0).inner == IsoLine(scales=(1.0, 3.0))
-    assert changed(anchor="nearest").anchor == "nearest"  # version 0.5's
+    assert changed(anchor="nearest").surrogate.anchor == "nearest"  # version 0.5's
     assert changed(steering_share=0.0).steering is None  # version 0.4's "mqd"
     assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
     assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
@@ -417,14 +431,14 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     share = np.asarray(m["model_share"])
     np.testing.assert_array_equal(share[warm], 1.0)  # warm-up: the inner emitter's candidates, all "the rule's"
     assert np.all((share[~warm] >= 0.1 - 1e-6) & (share[~warm] <= 0.9 + 1e-6))
-    assert state.emitter.model.params["params"]["Dense_0"]["bias"].shape[0] == 2
+    assert state.emitter.surrogate.model.params["params"]["Dense_0"]["bias"].shape[0] == 2
     steered = np.asarray(m["steered"])
     np.testing.assert_array_equal(steered[warm], 0)  # none in warm-up; after it, rollouts of the 14 steered rows
     assert np.all(steered[~warm] <= np.asarray(m["evaluations"])[~warm]) and steered[~warm].sum() > 0
 
 
 def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_only_them(linear_task):
-    emitter = ModelEmitter(IsoLine(), Diverse(2), num_batches=3, training_data="rollouts", rollout_buffer=8)
+    emitter = ModelEmitter(IsoLine(), Diverse(2), Surrogate(num_batches=3, training_data="rollouts", rollout_buffer=8))
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     rep = Repertoire.empty(16, 3, 2, 4)
     params = Params(jnp.float32(0.02), emitter.default_params())
@@ -437,15 +451,15 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
         status = jnp.where(usable, int(AddStatus.ADDED), int(AddStatus.SKIPPED))
         state, _ = emitter.update(jax.random.PRNGKey(9), state, proposal, Evaluated(b, q, usable, status), rep,
                                   linear_task, params)
-    buffer = state.rollouts
+    buffer = state.surrogate.rollouts
     assert int(buffer.total) == 10  # 5 usable a generation; the ring of 8 keeps the latest 8
     want = np.concatenate([np.asarray(jnp.arange(5.0) * 0.01) + s * 0.1 for s in range(2)])[-8:]
     got = np.asarray(buffer.actions[(np.arange(10, 18)) % 8, 0])  # oldest first
     np.testing.assert_allclose(got, want, rtol=1e-6)
     # The model trained on the buffer (from the first generation: no warm-up), 3 steps a generation.
-    assert int(state.model.steps) == 6
-    with pytest.raises(ValueError, match=r"ModelEmitter\.training_data="):
-        ModelEmitter(IsoLine(), training_data="archive")
+    assert int(state.surrogate.model.steps) == 6
+    with pytest.raises(ValueError, match=r"Surrogate\.training_data="):
+        Surrogate(training_data="archive")
 
 
 def flat(cfg):

@@ -28,9 +28,10 @@ def linear_state(linear_cfg, linear_task):
     n = 64
     rep = rep.replace(actions=rep.actions.at[:n].set(actions), behaviors=rep.behaviors.at[:n].set(b),
                       qualities=rep.qualities.at[:n].set(q), valid=jnp.arange(rep.capacity) < n, count=jnp.int32(n))
-    trained, _ = model.train(state.emitter.model, jax.random.PRNGKey(2), rep, linear_task, jnp.float32(1e-2),
-                             linear_cfg.emitter.batch_size, linear_cfg.emitter.num_batches)
-    return state.replace(repertoire=rep, emitter=state.emitter.replace(model=trained))
+    trained, _ = model.train(state.emitter.surrogate.model, jax.random.PRNGKey(2), rep, linear_task, jnp.float32(1e-2),
+                             linear_cfg.emitter.surrogate.batch_size, linear_cfg.emitter.surrogate.num_batches)
+    return state.replace(repertoire=rep, emitter=state.emitter.replace(
+        surrogate=state.emitter.surrogate.replace(model=trained)))
 
 
 def goals_near(state, num=32):
@@ -142,7 +143,8 @@ def test_bad_calls_are_refused_before_tracing(obstacle_run):
         adapt(qd_state, jnp.zeros((3, 2)), key, qd_cfg, "model")
     with pytest.raises(ValueError, match=r"does not belong to this config.*another structure"):
         adapt(qd_state, jnp.zeros((3, 2)), key, cfg, "linear")  # a QD state with an M-QD config
-    model = state.emitter.model
-    untrained = state.replace(emitter=state.emitter.replace(model=model.replace(steps=jnp.zeros_like(model.steps))))
+    model = state.emitter.surrogate.model
+    surrogate = state.emitter.surrogate.replace(model=model.replace(steps=jnp.zeros_like(model.steps)))
+    untrained = state.replace(emitter=state.emitter.replace(surrogate=surrogate))
     with pytest.raises(ValueError, match="needs a trained model"):
         adapt(untrained, jnp.zeros((3, 2)), key, cfg, "model")

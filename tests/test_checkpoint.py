@@ -1,6 +1,8 @@
 import dataclasses
 import hashlib
 import os
+import pathlib
+import shutil
 
 import jax
 import numpy as np
@@ -8,7 +10,7 @@ import pytest
 from flax import serialization
 
 from mqd_jax import Config, run_mqd
-from mqd_jax.experiment import checkpoint
+from mqd_jax.experiment import checkpoint, cli, folders, results
 
 CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),
              population_size=16, max_generations=12, capacity=256, archive_capacity=64)
@@ -85,7 +87,7 @@ def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.load(str(path), CFG, KEY)
     payload = serialization.msgpack_restore(data)
     path.write_bytes(serialization.msgpack_serialize({**payload, "format": checkpoint.FORMAT + 1}))
-    with pytest.raises(ValueError, match="not an mqd-jax checkpoint of format 1 to 5"):
+    with pytest.raises(ValueError, match=f"not an mqd-jax checkpoint of format 1 to {checkpoint.FORMAT}"):
         checkpoint.load(str(path), CFG, KEY)
     path.write_bytes(serialization.msgpack_serialize({**payload, "sha256": "0" * 64}))
     with pytest.raises(ValueError, match="checksum does not match"):
@@ -103,14 +105,16 @@ def uninterrupted_paper():
 
 
 def _as_format_4(body):
-    """A format-5 checkpoint body of the paper's filter as format 4 wrote it: the preset named "mqd", no
+    """A format-6 checkpoint body of the paper's filter as format 4 wrote it: the preset named "mqd", no
     `ensemble_size` or `optimism` in the config; one network without a member axis; no `rollouts`,
     `fallback` or `anchor_errors` in the model emitter's state."""
     flat = {**{k: v for k, v in body["config"].items() if k != "algorithm_options"},
             **body["config"]["algorithm_options"]}  # before version 0.10 the preset's settings were fields
     config = {k: v for k, v in flat.items() if k not in ("ensemble_size", "optimism")}
     config.update(algorithm="mqd")
-    emitter = {k: v for k, v in body["state"]["emitter"].items() if k not in ("rollouts", "fallback", "anchor_errors")}
+    flat = body["state"]["emitter"]  # format 6 holds the model in the surrogate's state; formats 4-5 beside the rest
+    flat = {**{k: v for k, v in flat.items() if k != "surrogate"}, **flat["surrogate"]}
+    emitter = {k: v for k, v in flat.items() if k not in ("rollouts", "fallback", "anchor_errors")}
     model = dict(emitter["model"])
     squeeze = lambda tree: jax.tree.map(lambda x: x[0], tree)  # noqa: E731
     adam = dict(model["opt_state"]["inner_state"]["0"])
@@ -184,3 +188,24 @@ def test_a_crash_while_saving_keeps_the_previous_checkpoint(tmp_path, uninterrup
 def test_every_must_be_a_positive_int(tmp_path):
     with pytest.raises(ValueError, match="every=0 is invalid"):
         checkpoint.run_with_checkpoints(KEY, CFG, str(tmp_path / "x"), every=0)
+
+
+V09 = pathlib.Path(__file__).resolve().parent / "data" / "v0.9.0"  # folders mqd-jax 0.9.0 wrote (format 5)
+
+
+def test_folders_of_version_0_9_resume_tabulate_and_adapt(tmp_path, capsys):
+    """Their configs' settings become options, their checkpoints (one run, and a sweep's batch) load with the
+    model moved into the surrogate's state, their files' checksums hold."""
+    shutil.copytree(V09, tmp_path / "v09")
+    run, sweep = tmp_path / "v09" / "run", tmp_path / "v09" / "sweep"
+    saved = folders.read_json(str(run / "metrics.json"), "")
+    flags = ["--generations", "3", "--population", "8", "--capacity", "32", "--archive-capacity", "16",
+             "--coverage-resolution", "16", "-O", "warmup_samples=8", "num_batches=2", "hidden_size=4"]
+    cli.main(["run", "--algorithm", "mqd", *flags, "--out", str(run), "--resume"])
+    assert "resuming at generation 3 of 3" in capsys.readouterr().out  # the whole run, nothing to compute
+    assert folders.read_json(str(run / "metrics.json"), "")["metrics"] == saved["metrics"]
+    cfg, _, states = results.load_states(str(sweep), "obstacle2d")
+    assert cfg.options["hidden_size"] == 4 and states.emitter.surrogate.model.steps.shape == (2,)
+    assert (np.asarray(states.emitter.surrogate.model.steps) > 0).all()
+    cli.main(["plot", str(sweep)])
+    assert "| obstacle2d |" in (sweep / "table1.md").read_text()

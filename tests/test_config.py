@@ -43,14 +43,14 @@ def test_invalid_values_name_the_field(field, value):
 @pytest.mark.parametrize("algorithm, option, value, match", [
     ("mqd-paper", "t_nov", -1.0, r"Threshold.t_nov=-1.0"), ("mqd-paper", "t_qua", "x", r"t_qua='x' is invalid: "
                                                                                          "expected a float"),
-    ("mqd", "learning_rate", -1e-3, "ModelEmitter.learning_rate=-0.001"), ("mqd", "batch_size", 0,
-                                                                           "ModelEmitter.batch_size=0"),
-    ("mqd", "num_batches", -1, "ModelEmitter.num_batches=-1"), ("mqd", "warmup_samples", -5,
+    ("mqd", "learning_rate", -1e-3, "Surrogate.learning_rate=-0.001"), ("mqd", "batch_size", 0,
+                                                                           "Surrogate.batch_size=0"),
+    ("mqd", "num_batches", -1, "Surrogate.num_batches=-1"), ("mqd", "warmup_samples", -5,
                                                                 "ModelEmitter.warmup_samples=-5"),
     ("mqd", "hidden_size", True, "hidden_size=True is invalid: expected a int"),
     ("qd", "iso_sigma", -0.1, "IsoLine.iso_sigma=-0.1"), ("qd", "line_sigma", float("inf"), "IsoLine.line_sigma=inf"),
     ("mqd", "pool_factor", 0, "Diverse.pool_factor=0"), ("mqd", "steering_share", 1.0, "Steering.share=1.0"),
-    ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "ModelEmitter.anchor='first'"),
+    ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "Surrogate.anchor='first'"),
     ("mqd", "parent_weight", -1.0, "Diverse.parent_weight=-1.0"), ("mqd", "parent_weight", float("nan"),
                                                                    "Diverse.parent_weight=nan"),
     ("mqd", "quality_share", 1.5, "Diverse.quality_share=1.5"), ("mqd", "wide_scale", 0.0, "IsoLine.scales="),

@@ -9,12 +9,25 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Budgeted, Config, Emitter, IsoLine, ModelEmitter, Params, Proposal, Threshold, Uniform, run_mqd
+from mqd_jax import (
+    Budgeted,
+    Config,
+    Emitter,
+    IsoLine,
+    ModelEmitter,
+    Params,
+    Proposal,
+    Surrogate,
+    Threshold,
+    Uniform,
+    Validity,
+    presets,
+    run_mqd,
+)
 from mqd_jax.core.emitter import action_bounds
 from mqd_jax.core.registry import make
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.run import METRICS
-from mqd_jax.emitters import presets
 from mqd_jax.emitters.acquisition import Judged
 
 
@@ -31,11 +44,12 @@ def test_presets_are_these_compositions():
     cfg = Config(algorithm="mqd-paper", k=4, algorithm_options=model_settings, max_generations=2)
     assert Config(algorithm="random").emitter == presets.random() == Uniform()
     assert Config(algorithm="qd").emitter == presets.qd() == IsoLine()
-    assert cfg.emitter == presets.mqd_paper(k=4, **model_settings) == ModelEmitter(IsoLine(), Threshold(), k=4,
-                                                                                   **model_settings)
+    surrogate = Surrogate(**{k: v for k, v in model_settings.items() if k != "warmup_samples"})
+    assert cfg.emitter == presets.mqd_paper(k=4, **model_settings) == ModelEmitter(IsoLine(), Threshold(), surrogate,
+                                                                                   k=4, warmup_samples=5)
     budgeted = Config(algorithm="mqd-paper", k=4, algorithm_options={**model_settings, "budgeted": True,
                                                                      "pool_factor": 3}, max_generations=2)
-    assert budgeted.emitter == ModelEmitter(IsoLine(), Budgeted(3), k=4, **model_settings)
+    assert budgeted.emitter == ModelEmitter(IsoLine(), Budgeted(3), surrogate, k=4, warmup_samples=5)
     emitter = ModelEmitter(Uniform(), Budgeted(2))
     assert dataclasses.replace(cfg, algorithm=emitter, algorithm_options={}).emitter is emitter
 
@@ -44,8 +58,9 @@ def test_a_composed_model_emitter_runs_bit_identical_to_the_mqd_paper_preset(tin
     preset = tiny(algorithm="mqd-paper", warmup_samples=48, num_batches=10, max_generations=6, t_nov=0.1, t_qua=0.1)
     o = preset.options
     composed = dataclasses.replace(preset, algorithm_options={}, algorithm=ModelEmitter(
-        IsoLine(), Threshold(t_nov=0.1, t_qua=0.1), k=preset.k, hidden_size=o["hidden_size"],
-        batch_size=o["batch_size"], num_batches=o["num_batches"], warmup_samples=o["warmup_samples"]))
+        IsoLine(), Threshold(t_nov=0.1, t_qua=0.1), Surrogate(hidden_size=o["hidden_size"],
+                                                              batch_size=o["batch_size"], num_batches=o["num_batches"]),
+        k=preset.k, warmup_samples=o["warmup_samples"]))
     (s1, m1), (s2, m2) = (run_mqd(jax.random.PRNGKey(1), c) for c in (preset, composed))
     assert set(m1) == set(m2) == set(METRICS) | {"discarded", "model_loss", "prediction_error", "opener_auc"}
     for name in m1:
@@ -107,8 +122,10 @@ def test_an_emitter_that_breaks_the_protocol_is_named_while_tracing(tiny, emitte
 def test_bad_compositions_are_refused_at_construction():
     with pytest.raises(ValueError, match=r"ModelEmitter.inner=.* expected an Emitter"):
         ModelEmitter("qd")
-    with pytest.raises(ValueError, match=r"ModelEmitter\.hidden_size=0"):
-        ModelEmitter(IsoLine(), hidden_size=0)
+    with pytest.raises(ValueError, match=r"Surrogate\.hidden_size=0"):
+        Surrogate(hidden_size=0)
+    with pytest.raises(ValueError, match=r"ModelEmitter\.surrogate=.* expected a Surrogate"):
+        ModelEmitter(IsoLine(), surrogate=Validity())
     clash = r"metrics \['discarded', 'model_loss', 'opener_auc', 'prediction_error'\] clash"
     with pytest.raises(ValueError, match=clash):
         ModelEmitter(ModelEmitter(IsoLine()))

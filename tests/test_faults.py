@@ -55,7 +55,7 @@ def test_failed_rollouts_are_counted_but_never_stored(algorithm, tiny):
     assert not fails(np.asarray(arch.actions[:stored])).any()
     assert np.isfinite(np.asarray(rep.behaviors)).all() and np.isfinite(np.asarray(rep.qualities)).all()
     if algorithm == "mqd":  # the model trains on the repertoire only, so it stays finite
-        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.emitter.model.params))
+        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.emitter.surrogate.model.params))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Params, Validity, run_mqd
+from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Params, Surrogate, Validity, run_mqd
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.emitters.imagination import survivors
@@ -17,7 +17,7 @@ K = 3
 
 
 @dataclasses.dataclass(frozen=True)
-class _Perfect(Imagination):
+class _Perfect(Surrogate):
     """A model that knows the task's true outcomes."""
 
     def members(self, state, actions, task):
@@ -42,7 +42,7 @@ def test_survivors_by_hand():
 def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force(linear_task, tiny):
     start = jax.random.uniform(jax.random.PRNGKey(3), (12, 3), minval=-1.0, maxval=1.0)
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), start, linear_task, jnp.ones(12, bool))
-    emitter = _Perfect(IsoLine(), k=K, generations=2)
+    emitter = Imagination(IsoLine(), surrogate=_Perfect(), k=K, generations=2)
     params = Params(jnp.float32(T_DIST), emitter.default_params())
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     key, num = jax.random.PRNGKey(7), 10
@@ -70,7 +70,7 @@ def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force
 
 def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_task, tiny):
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), jnp.zeros((1, 3)), linear_task, jnp.ones(1, bool))
-    emitter = _Perfect(IsoLine(), k=K, generations=3, warmup_samples=100)
+    emitter = Imagination(IsoLine(), surrogate=_Perfect(), k=K, generations=3, warmup_samples=100)
     params = Params(jnp.float32(0.02), emitter.default_params())
     key = jax.random.PRNGKey(5)
     proposal = emitter.propose(key, emitter.init(key, linear_task), rep, linear_task, params, 6)
@@ -82,15 +82,16 @@ def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_
 @pytest.mark.parametrize("kw, field", [({"generations": 0}, "generations"),
                                        ({"generations": 2.0}, "generations"),
                                        ({"fallback": Fallback(), "acquisition": Diverse()}, "fallback"),
-                                       ({"validity": Validity(), "acquisition": Diverse()}, "validity")])
+                                       ({"surrogate": Surrogate(validity=Validity()), "acquisition": Diverse()},
+                                        "surrogate.validity")])
 def test_imagination_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Imagination.{field}="):
         Imagination(IsoLine(), **kw)
 
 
 def test_a_run_rolls_out_at_most_the_population_and_counts_the_rest_as_discarded(tiny):
-    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), anchoring="auto", warmup_samples=16,
-                                                                num_batches=2))
+    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), surrogate=Surrogate(anchoring="auto", num_batches=2),
+                                                        warmup_samples=16))
     _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     assert np.all(metrics["evaluations"] + metrics["discarded"] == cfg.population_size)
     assert metrics["evaluations"][0] == cfg.population_size  # warm-up: the first 16 rollouts

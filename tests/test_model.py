@@ -108,7 +108,7 @@ def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
     options = dict(t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
     mqd = dataclasses.replace(qd, algorithm="mqd-paper", algorithm_options=options)
     (s_qd, m_qd), (s_mqd, m_mqd) = run(qd), run(mqd)
-    assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.emitter.model.steps) == 20 * 9
+    assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.emitter.surrogate.model.steps) == 20 * 9
     for field in ("repertoire", "archive", "coverage", "key", "generation", "num_evaluations"):
         for a, b in zip(jax.tree.leaves(getattr(s_qd, field)), jax.tree.leaves(getattr(s_mqd, field)), strict=True):
             np.testing.assert_array_equal(a, b)
@@ -159,7 +159,7 @@ def test_warm_up_runs_as_qd_and_does_not_train(tiny):
     # Training starts at the end of the generation that completes warm-up, and then every generation.
     trained = np.isfinite(np.asarray(m["model_loss"]))
     np.testing.assert_array_equal(trained, np.asarray(m["num_evaluations"]) >= cfg.options["warmup_samples"])
-    assert int(state.emitter.model.steps) == cfg.options["num_batches"] * trained.sum()
+    assert int(state.emitter.surrogate.model.steps) == cfg.options["num_batches"] * trained.sum()
     assert np.all(np.isfinite(np.asarray(m["prediction_error"])[warm]))
     assert np.all(np.isnan(np.asarray(m["prediction_error"])[~warm]))  # nothing evaluated
 

@@ -9,7 +9,18 @@ import numpy as np
 import pytest
 
 import mqd_jax
-from mqd_jax import Config, Diverse, Fallback, Imagination, IsoLine, ModelEmitter, Steering, Threshold, run_mqd
+from mqd_jax import (
+    Config,
+    Diverse,
+    Fallback,
+    Imagination,
+    IsoLine,
+    ModelEmitter,
+    Steering,
+    Surrogate,
+    Threshold,
+    run_mqd,
+)
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.surrogate import model
@@ -160,10 +171,11 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     """The last rows of the pool are steered children whose predicted behavior moved by the step the model's
     Jacobian was asked for (a small step, where the network is nearly linear); the first rows are the inner
     emitter's; during warm-up the pool is the inner emitter's."""
-    emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), hidden_size=8, warmup_samples=10,
+    emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8), warmup_samples=10,
                            steering=Steering(share=0.5, step_low=0.05, step_high=0.05))
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
-    state = state.replace(model=model.init(jax.random.PRNGKey(3), 8, linear_task))
+    state = state.replace(surrogate=state.surrogate.replace(model=model.init(jax.random.PRNGKey(3), 8, linear_task)))
+    predict = lambda actions: emitter.surrogate.predict(state.surrogate, actions, linear_task)  # noqa: E731
     rep = skills_at(linear_task, [[0.1, -0.2, 0.3]])
     params, key = Config().params(), jax.random.PRNGKey(4)
     pool = emitter.inner.propose(key, state.inner, rep, linear_task, params, 40)
@@ -173,7 +185,7 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
         np.testing.assert_array_equal(np.asarray(steered), np.arange(40) >= 40 - steered_rows)
         np.testing.assert_array_equal(got.actions[:40 - steered_rows], pool.actions[:40 - steered_rows])
     children = got.actions[20:]
-    moved = emitter.predict(state, children, linear_task)[0] - emitter.predict(state, rep.actions[:1], linear_task)[0]
+    moved = predict(children)[0] - predict(rep.actions[:1])[0]
     np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.05)
     with pytest.raises(ValueError, match="leaving the inner emitter"):
         emitter._steered(key, state, pool, rep, linear_task, params, 25, jnp.bool_(False))
@@ -182,18 +194,19 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     climbing = dataclasses.replace(emitter, steering=dataclasses.replace(emitter.steering, quality=1.0))
     climbed = climbing._steered(jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
                                 jnp.bool_(False))[0].actions[20:]
-    behaviors, qualities = climbing.predict(state, climbed, linear_task)
-    moved = behaviors - emitter.predict(state, rep.actions[:1], linear_task)[0]
+    behaviors, qualities = predict(climbed)
+    moved = behaviors - predict(rep.actions[:1])[0]
     np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.1)
-    assert (np.asarray(qualities) > np.asarray(emitter.predict(state, children, linear_task)[1])).all()
+    assert (np.asarray(qualities) > np.asarray(predict(children)[1])).all()
 
 
 def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     """With no variation (sigmas 0) every child is its parent's action: IsoLine's and a mutation step's alike, so
     the parents a ModelEmitter's proposal names (IsoLine's first parents, the steered rows' steering parents,
     kept with the rows the rule chose) hold exactly the proposed actions."""
-    emitter = ModelEmitter(IsoLine(iso_sigma=0.0, line_sigma=0.0), Diverse(pool_factor=4), hidden_size=8,
-                           anchoring="always", steering=Steering(share=0.5, step="mutation", iso_sigma=0.0))
+    emitter = ModelEmitter(IsoLine(iso_sigma=0.0, line_sigma=0.0), Diverse(pool_factor=4),
+                           Surrogate(hidden_size=8, anchoring="always"),
+                           steering=Steering(share=0.5, step="mutation", iso_sigma=0.0))
     state = emitter.init(jax.random.PRNGKey(0), linear_task)
     rep = skills_at(linear_task, [[0.1 * i, -0.05 * i, 0.02 * i * i] for i in range(8)])
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
@@ -213,7 +226,7 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
 
 
 def test_a_steered_run_reports_its_steered_rollouts(tiny):
-    steered = ModelEmitter(IsoLine(), Diverse(), hidden_size=8, num_batches=2, warmup_samples=16,
+    steered = ModelEmitter(IsoLine(), Diverse(), Surrogate(hidden_size=8, num_batches=2), warmup_samples=16,
                            steering=Steering())
     cfg = tiny(algorithm=steered, max_generations=4)
     _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
@@ -224,7 +237,7 @@ def test_a_steered_run_reports_its_steered_rollouts(tiny):
 
 def test_a_steering_pursuit_moves_its_share_by_the_pursuit_rule(tiny):
     pursuit = Fallback(floor=0.1, rate=0.2)
-    steered = ModelEmitter(IsoLine(), Diverse(), hidden_size=8, num_batches=2, warmup_samples=16,
+    steered = ModelEmitter(IsoLine(), Diverse(), Surrogate(hidden_size=8, num_batches=2), warmup_samples=16,
                            steering=Steering(share=0.5, pursuit=pursuit))
     cfg = tiny(algorithm=steered, max_generations=6)
     _, metrics = run_mqd(jax.random.PRNGKey(1), cfg)

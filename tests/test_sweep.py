@@ -37,7 +37,7 @@ def test_chunks_do_not_change_a_batch_and_runs_keep_their_key():
 
 def test_threshold_grid_pairs_every_setting_with_the_same_seeds():
     cfg = Config(algorithm="mqd-paper", algorithm_options=MODEL, **TINY)
-    assert sweep.param_names(cfg.params()) == ["t_dist", "emitter.learning_rate", "emitter.inner.iso_sigma",
+    assert sweep.param_names(cfg.params()) == ["t_dist", "emitter.surrogate.learning_rate", "emitter.inner.iso_sigma",
                                                "emitter.inner.line_sigma", "emitter.acquisition.t_nov",
                                                "emitter.acquisition.t_qua"]
     t_nov, t_qua = "emitter.acquisition.t_nov", "emitter.acquisition.t_qua"

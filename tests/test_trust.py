@@ -212,7 +212,7 @@ def test_leftover_temporary_files_of_a_killed_writer_are_removed(tmp_path, capsy
 @pytest.mark.parametrize(("algorithm", "name", "value", "match"), [
     ("qd", "t_dist", np.nan, "Params.t_dist=nan"), ("qd", "t_dist", 0.05, "Params.t_dist=0.05.* and <= 0.02"),
     ("qd", "emitter.iso_sigma", np.nan, "IsoLine.params.iso_sigma=nan"),
-    ("mqd-paper", "emitter.learning_rate", 0.0, "ModelEmitter.params.learning_rate=0.0"),
+    ("mqd-paper", "emitter.surrogate.learning_rate", 0.0, "Surrogate.params.learning_rate=0.0"),
     ("mqd-paper", "emitter.acquisition.t_qua", np.inf, "Threshold.params.t_qua=inf"),
     ("mqd-paper", "emitter.acquisition.t_nov", -0.1, "Threshold.params.t_nov=-0.1")])
 def test_invalid_concrete_params_are_refused_naming_the_part_and_the_field(algorithm, name, value, match):

@@ -42,7 +42,7 @@ def test_mqd_on_a_user_task_learns_its_quality_range():
                  algorithm_options=dict(warmup_samples=128, learning_rate=1e-2, num_batches=100))
     state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (256, 2), minval=-3.14, maxval=3.14)
-    _, pred_q = model.predict(state.emitter.model, actions, task)
+    _, pred_q = model.predict(state.emitter.surrogate.model, actions, task)
     _, q, _ = task.evaluate(actions, None)
     # tanh outputs map onto quality_range, and the model has learnt where in it qualities lie.
     assert np.all((np.asarray(pred_q) >= -6.3) & (np.asarray(pred_q) <= 0.0))

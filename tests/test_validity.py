@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import IsoLine, ModelEmitter, Params, Steering, Task, Validity, run_mqd
+from mqd_jax import IsoLine, ModelEmitter, Params, Steering, Surrogate, Task, Validity, run_mqd
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, ranking
 from mqd_jax.emitters.model_emitter import auc
 from mqd_jax.emitters.pursuit import Fallback
@@ -92,8 +92,8 @@ def test_the_rules_put_likely_unusable_candidates_after_the_others_by_hand():
 
 
 def composed(validity):
-    return ModelEmitter(IsoLine(), Diverse(3), num_batches=5, warmup_samples=32, anchoring="auto",
-                        fallback=Fallback(), steering=Steering(share=0.3), validity=validity)
+    return ModelEmitter(IsoLine(), Diverse(3), Surrogate(num_batches=5, anchoring="auto", validity=validity),
+                        warmup_samples=32, fallback=Fallback(), steering=Steering(share=0.3))
 
 
 def test_without_unusable_rollouts_a_run_is_the_same_as_without_the_classifier(tiny):
@@ -112,7 +112,7 @@ def test_its_buffer_counts_every_rollout_the_run_counts(tiny):
     ones as the run's `invalid` metric counts; its AUC is a probability wherever both kinds were rolled out."""
     cfg = tiny(task=half_usable(), algorithm=composed(Validity(buffer_size=1024, num_batches=20)))
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
-    validity = state.emitter.validity
+    validity = state.emitter.surrogate.validity
     assert int(validity.buffer.total) == int(np.sum(m["evaluations"]))
     assert int(validity.unusable) == int(np.sum(m["invalid"])) > 0
     labels = np.asarray(validity.buffer.qualities[:int(validity.buffer.total)])
@@ -128,5 +128,5 @@ def test_its_buffer_counts_every_rollout_the_run_counts(tiny):
 def test_validity_is_validated(kw, field):
     with pytest.raises(ValueError, match=rf"Validity\.{field}="):
         Validity(**kw)
-    with pytest.raises(ValueError, match=r"ModelEmitter\.validity="):
-        ModelEmitter(IsoLine(), Diverse(), validity=True)
+    with pytest.raises(ValueError, match=r"Surrogate\.validity="):
+        Surrogate(validity=True)

@@ -62,20 +62,20 @@ class Imagination(ModelEmitter):
         if self.steering is not None:
             raise ValueError(f"Imagination.steering={self.steering!r} is invalid: expected None (imagined "
                              "generations draw their own pools)")
-        if self.validity is not None:
-            raise ValueError(f"Imagination.validity={self.validity!r} is invalid: expected None (no acquisition "
-                             "rule reads it: what the imagined generations add is rolled out)")
+        if self.surrogate.validity is not None:
+            raise ValueError(f"Imagination.surrogate.validity={self.surrogate.validity!r} is invalid: expected None "
+                             "(no acquisition rule reads it: what the imagined generations add is rolled out)")
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
         def imagine(rep: Repertoire, key: jax.Array) -> tuple[Repertoire, tuple[Any, ...]]:
             pool = self.inner.propose(key, state.inner, rep, task, params.part(params.emitter.inner), num)
-            plain, anchored = self.predictions(state, pool.actions, rep, task, pool.parents)
-            predicted = self.chosen(state, plain, anchored).mean(axis=0)
+            plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, rep, task, pool.parents)
+            predicted = self.surrogate.chosen(state.surrogate, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,
                                              params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32)
             # anchoring "auto" compares both predictions on the rollouts (ModelEmitter.update).
-            both = (plain.mean(axis=0), anchored.mean(axis=0)) if self.anchoring == "auto" else ()
+            both = (plain.mean(axis=0), anchored.mean(axis=0)) if self.surrogate.anchoring == "auto" else ()
             return rep, (pool, predicted, both, repertoire_lib.written_slots(ins, rep.capacity))
 
         _, (pools, predicted, both, written) = jax.lax.scan(
@@ -92,7 +92,7 @@ class Imagination(ModelEmitter):
         info = {"inner": jax.tree.map(flat, pools.info), "predicted_behaviors": behaviors,
                 "predicted_distance": jnp.sqrt(sq), "from_model": jnp.ones(num, bool),
                 "discarded": (wanted & ~rollout).sum(dtype=jnp.int32)}
-        if self.anchoring == "auto":
+        if self.surrogate.anchoring == "auto":
             info["both_behaviors"] = jnp.stack([flat(y)[:, :-1] for y in both])
         # No parents: an imagined candidate's parent may be an imagined skill, not one of `repertoire`'s.
         return Proposal(flat(pools.actions), rollout, info)

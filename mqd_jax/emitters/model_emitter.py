@@ -1,9 +1,10 @@
 """M-QD's model as an emitter wrapper: a learned forward model decides which of another emitter's candidates
 are worth a rollout (paper, "Model-Based Quality-Diversity Search", Algorithm 1).
 
-`ModelEmitter(inner, acquisition)` asks `inner` for a pool of candidates,
-predicts their behaviors and qualities with its model (`mqd_jax.surrogate.model`, one
-network or a vmapped ensemble), scores them against the repertoire and lets
+`ModelEmitter(inner, acquisition, surrogate)` asks `inner` for a pool of candidates,
+predicts their behaviors and qualities with its surrogate (`mqd_jax.surrogate.surrogate`: the
+model, one network or a vmapped ensemble, its training data, anchoring and validity classifier),
+scores them against the repertoire and lets
 the acquisition rule choose (`mqd_jax.emitters.acquisition`: the paper's `Threshold`
 filter, `Budgeted` ranking or `Diverse` batch selection). Until
 `warmup_samples` of its candidates were rolled out the rule passes the inner
@@ -11,22 +12,8 @@ emitter's proposal through. After every generation past warm-up it trains the
 model on the repertoire, or on a buffer of its latest rollouts. It owns the
 model's state and reports the model's metrics; any emitter can be the inner one.
 
-Two options change what the model says and how much it is trusted:
+Two options change what the model's choice is worth (the surrogate's `anchoring` changes what it says):
 
-* `anchoring`: "always" anchors a candidate's prediction at a repertoire
-  skill a_j near it, whose true outcome is known: b~(a) = b(a_j) + phi(a) -
-  phi(a_j), and likewise the quality. The model then only has to predict
-  differences between nearby actions, which helps where behavior is smooth in
-  the action and hurts across discontinuities (contact). "auto" keeps an
-  exponential average (weight `ERROR_AVERAGING`) of both predictions'
-  held-out behavior error on every generation's rollouts and uses the one
-  whose average is lower (the plain one until both have one). `anchor` says
-  which skill: "parent", the one the candidate was varied from, as the inner
-  emitter names it (`Proposal.parents`; a steered child's is its steering
-  parent; a candidate without one, -1, keeps its plain prediction; an inner
-  emitter that names none, None, gets the nearest); "nearest", the skill
-  nearest to it in normalized action space, found by a search over the
-  repertoire (the costliest step of a generation on a 2D task).
 * `fallback` (`Fallback`): a share of each generation's rollouts goes to the
   model's choice and the rest to the inner emitter's own first candidates; the
   share pursues whichever side's rollouts have recently opened new niches
@@ -39,9 +26,9 @@ Jacobian aims at empty behavior space. The inner emitter's `update` then sees
 its proposal with those rows' actions replaced (IsoLine and Uniform keep no
 per-candidate state); the fallback's rows are always the inner emitter's own.
 
-And `validity` (`validity.Validity`) adds a classifier of usable rollouts,
-whose judgement the acquisition rules read: candidates judged likely invalid
-come after the others.
+And the surrogate's `validity` (`validity.Validity`) adds a classifier of usable
+rollouts, whose judgement the acquisition rules read: candidates judged likely
+invalid come after the others.
 """
 
 from __future__ import annotations
@@ -53,34 +40,27 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mqd_jax.core import archive as archive_lib
 from mqd_jax.core import repertoire as repertoire_lib
-from mqd_jax.core.checks import check_traced, is_int, is_real
+from mqd_jax.core.checks import is_int
 from mqd_jax.core.emitter import Emitter, Evaluated, Proposal
 from mqd_jax.core.params import Params
 from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.core.task import Task
 from mqd_jax.emitters import acquisition
 from mqd_jax.emitters import steering as steering_lib
-from mqd_jax.emitters.pursuit import Fallback, running_average
-from mqd_jax.surrogate import model
-from mqd_jax.surrogate import validity as validity_lib
+from mqd_jax.emitters.pursuit import Fallback
+from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState, prediction_error
 
 _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
             "opener_auc": jnp.float32}
-TRAINING_DATA = ("repertoire", "rollouts")
-ANCHORING = ("none", "always", "auto")
-ANCHORS = ("parent", "nearest")
-# The weight of a generation's held-out error in anchoring="auto"'s averages.
-ERROR_AVERAGING = 0.2
 
 
 @struct.dataclass
 class ModelEmitterParams:
-    """A `ModelEmitter`'s traced parameters: the model's Adam `learning_rate` (its validity classifier's too),
-    and the inner emitter's and the acquisition rule's own."""
+    """A `ModelEmitter`'s traced parameters: its parts' own (the surrogate's learning rate, the inner emitter's
+    and the acquisition rule's)."""
 
-    learning_rate: jax.Array
+    surrogate: Any
     inner: Any = ()
     acquisition: Any = ()
 
@@ -90,27 +70,18 @@ class ModelEmitterState:
     """The wrapper's state.
 
     Attributes:
-      model: the forward model's parameters and optimizer state.
+      surrogate: the surrogate's state (`SurrogateState`: the model, its training data, anchoring, validity).
       inner: the inner emitter's state.
       evaluations: int32, this emitter's candidates rolled out so far (warm-up counts them).
-      rollouts: the buffer of its latest usable rollouts the model trains on
-        (`archive.Archive` of `rollout_buffer` rows), or () when it trains on
-        the repertoire.
       fallback: `FallbackState`, or () without a fallback.
-      anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
-        plain and the anchored predictions (NaN before the first); else ().
       steering: `pursuit.FallbackState` of a steering pursuit, or ().
-      validity: `validity.ValidityState`, or () without a validity classifier.
     """
 
-    model: model.ModelState
+    surrogate: SurrogateState
     inner: Any
     evaluations: jax.Array
-    rollouts: Any = ()
     fallback: Any = ()
-    anchor_errors: Any = ()
     steering: Any = ()
-    validity: Any = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,24 +91,13 @@ class ModelEmitter(Emitter):
     Attributes:
       inner: the emitter whose candidates the model judges.
       acquisition: the rule that picks the candidates to roll out.
+      surrogate: the model, its training, anchoring and validity classifier (`Surrogate`).
       k: the repertoire neighbours the predicted novelty and improvement average over.
-      hidden_size: the model's hidden units (per member).
-      ensemble_size: the members of the model's ensemble.
-      batch_size, num_batches: training mini-batches per generation (per member).
-      learning_rate: Adam's rate, the default of the traced `ModelEmitterParams.learning_rate`.
       warmup_samples: rollouts before the model is trained and used.
-      anchoring: "none", "always" (predictions anchored at a repertoire skill, `anchor`) or "auto" (whichever
-        of the plain and the anchored ones has the lower recent held-out error; see the module's doc).
-      anchor: where anchored predictions are anchored: "parent" (the candidate's parent, as the inner emitter
-        names it) or "nearest" (the repertoire skill nearest in normalized action space; a search).
-      training_data: "repertoire" (its skills, as the paper) or "rollouts" (the
-        latest `rollout_buffer` usable rollouts of this emitter, in a ring buffer).
-      rollout_buffer: the size of that buffer.
       fallback: a `Fallback`, or None to always follow the acquisition rule.
         Only with a ranking rule (`Budgeted`, `Diverse`), whose best rows come first.
       steering: a `steering.Steering`, or None for the inner emitter's pool alone. Only with a ranking rule
         whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up.
-      validity: a `validity.Validity` classifier of usable rollouts that the rule consults, or None.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -156,42 +116,21 @@ class ModelEmitter(Emitter):
 
     inner: Emitter
     acquisition: acquisition.Acquisition = dataclasses.field(default_factory=acquisition.Threshold)
+    surrogate: Surrogate = dataclasses.field(default_factory=Surrogate)
     k: int = 5
-    hidden_size: int = 32
-    ensemble_size: int = 1
-    batch_size: int = 16
-    num_batches: int = 500
-    learning_rate: float = 1e-3
     warmup_samples: int = 0
-    anchoring: str = "none"
-    anchor: str = "parent"
-    training_data: str = "repertoire"
-    rollout_buffer: int = 4096
     fallback: Fallback | None = None
     steering: steering_lib.Steering | None = None
-    validity: validity_lib.Validity | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.inner, Emitter):
             raise ValueError(f"ModelEmitter.inner={self.inner!r} is invalid: expected an Emitter")
-        for name, lowest in (("k", 1), ("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1),
-                             ("num_batches", 1), ("warmup_samples", 0), ("rollout_buffer", 1)):
+        if not isinstance(self.surrogate, Surrogate):
+            raise ValueError(f"ModelEmitter.surrogate={self.surrogate!r} is invalid: expected a Surrogate")
+        for name, lowest in (("k", 1), ("warmup_samples", 0)):
             value = getattr(self, name)
             if not (is_int(value) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
-        if not (is_real(self.learning_rate) and self.learning_rate > 0):
-            raise ValueError(f"ModelEmitter.learning_rate={self.learning_rate!r} is invalid: expected a finite "
-                             "float > 0")
-        if self.anchoring == "nearest":
-            raise ValueError("ModelEmitter.anchoring='nearest' was split in version 0.6: anchoring='always' "
-                             "anchors every prediction, at the skill `anchor` names (anchor='nearest' as before)")
-        if self.anchoring not in ANCHORING:
-            raise ValueError(f"ModelEmitter.anchoring={self.anchoring!r} is invalid: expected one of {ANCHORING}")
-        if self.anchor not in ANCHORS:
-            raise ValueError(f"ModelEmitter.anchor={self.anchor!r} is invalid: expected one of {ANCHORS}")
-        if self.training_data not in TRAINING_DATA:
-            raise ValueError(f"ModelEmitter.training_data={self.training_data!r} is invalid: expected one of "
-                             f"{TRAINING_DATA}")
         if self.fallback is not None and not (isinstance(self.fallback, Fallback)
                                               and not isinstance(self.acquisition, acquisition.Threshold)):
             raise ValueError(f"ModelEmitter.fallback={self.fallback!r} is invalid: expected None, or a Fallback "
@@ -200,18 +139,16 @@ class ModelEmitter(Emitter):
                                               and not isinstance(self.acquisition, acquisition.Threshold)):
             raise ValueError(f"ModelEmitter.steering={self.steering!r} is invalid: expected None, or a Steering "
                              "with a ranking acquisition rule (Threshold would roll out every steered child)")
-        if self.validity is not None and not isinstance(self.validity, validity_lib.Validity):
-            raise ValueError(f"ModelEmitter.validity={self.validity!r} is invalid: expected None or a Validity")
         clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
 
     def default_params(self) -> ModelEmitterParams:
-        return ModelEmitterParams(jnp.float32(self.learning_rate), self.inner.default_params(),
+        return ModelEmitterParams(self.surrogate.default_params(), self.inner.default_params(),
                                   acquisition.params_of(self.acquisition))
 
     def check_params(self, params: ModelEmitterParams) -> None:
-        check_traced("ModelEmitter.params", "learning_rate", params.learning_rate, inclusive=False)
+        self.surrogate.check_params(params.surrogate)
         self.inner.check_params(params.inner)
         acquisition.check_params_of(self.acquisition, params.acquisition)
 
@@ -236,34 +173,24 @@ class ModelEmitter(Emitter):
         return count
 
     def init(self, key: jax.Array, task: Task) -> ModelEmitterState:
-        rollouts = (archive_lib.Archive.empty(self.rollout_buffer, task.action_dim, task.behavior_dim)
-                    if self.training_data == "rollouts" else ())
-        return ModelEmitterState(model=model.init(key, self.hidden_size, task, self.ensemble_size),
+        return ModelEmitterState(surrogate=self.surrogate.init(key, task),
                                  inner=self.inner.init(jax.random.fold_in(key, 1), task), evaluations=jnp.int32(0),
-                                 rollouts=rollouts, fallback=() if self.fallback is None else self.fallback.init(),
-                                 anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else (),
-                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init(),
-                                 validity=() if self.validity is None else self.validity.init(
-                                     jax.random.fold_in(key, 3), task))
-
-    def members(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> jax.Array:
-        """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n]. A subclass may
-        predict otherwise (an experiment's oracle returns the true outcomes)."""
-        return model.predict_members(state.model, actions, task)
+                                 fallback=() if self.fallback is None else self.fallback.init(),
+                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init())
 
     def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
               parents: jax.Array | None = None) -> acquisition.Judged:
         """The model's view of actions [N, n] (with their parents' slots [N], or None) against the repertoire
         (anchored as `anchoring` and `anchor` say)."""
-        return self._judged(state, *self.predictions(state, actions, repertoire, task, parents), repertoire,
-                            actions, task, parents)
+        plain, anchored = self.surrogate.predictions(state.surrogate, actions, repertoire, task, parents)
+        return self._judged(state, plain, anchored, repertoire, actions, task, parents)
 
     def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
                 repertoire: Repertoire, actions: jax.Array, task: Task,
                 parents: jax.Array | None) -> acquisition.Judged:
         """`Judged` from the members' plain and anchored predictions [E, N, d + 1] of actions [N, n] and their
         parents' slots [N] (-1: none) or None."""
-        y = self.chosen(state, plain, anchored)
+        y = self.surrogate.chosen(state.surrogate, plain, anchored)
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
         spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
@@ -274,39 +201,12 @@ class ModelEmitter(Emitter):
         nearest_quality = jnp.where(nearest[:, 0] >= 0, repertoire.qualities[jnp.maximum(nearest[:, 0], 0)], 0.0)
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
         distances = jnp.sqrt(sq)
-        validity = None if self.validity is None else self.validity.probability(state.validity, actions, task)
+        validity = (None if self.surrogate.validity is None
+                    else self.surrogate.validity.probability(state.surrogate.validity, actions, task))
         parent_novelty = None if parents is None else jnp.where(
             parents >= 0, repertoire.novelty[jnp.maximum(parents, 0)], jnp.nan)
         return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(nearest_sq[:, 0]), nearest_quality, novelty,
                                   improvement, distances, validity, parent_novelty)
-
-    def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
-        """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
-        whichever had the lower recent held-out error."""
-        if self.anchoring == "always":
-            return anchored
-        if self.anchoring == "auto":
-            return jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
-        return plain
-
-    def predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
-                    parents: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
-        """The members' plain predictions [E, N, d + 1] of actions [N, n] and, unless `anchoring` is "none", the
-        anchored ones: at the parents' slots [N] (-1: not anchored) with anchor="parent" and parents given, else
-        at the nearest skills."""
-        plain = self.members(state, actions, task)
-        if self.anchoring == "none":
-            return plain, None
-        if self.anchor == "parent" and parents is not None:
-            anchor, anchored_rows = jnp.maximum(parents, 0), (parents >= 0)[:, None]
-        else:
-            units = lambda a: model.normalize_actions(a, task)  # noqa: E731
-            # Many action dimensions: distances by matrix product (an anchor need only be near, not exactly nearest).
-            _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
-            anchored_rows = repertoire.count > 0
-        known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
-        anchored = known + plain - self.members(state, repertoire.actions[anchor], task)
-        return plain, jnp.where(anchored_rows, anchored, plain)
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
@@ -320,7 +220,8 @@ class ModelEmitter(Emitter):
                 pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
                                               warm_up)
         with jax.named_scope("predict"):
-            plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents)
+            plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, repertoire, task,
+                                                         pool.parents)
             judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
         with jax.named_scope("acquire"):
             rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up,
@@ -336,9 +237,9 @@ class ModelEmitter(Emitter):
                 "predicted_distance": jnp.sqrt(kept_sq[:, 0]), "from_model": from_model, "discarded": discarded}
         if self.steering is not None:
             info["steered"] = steered[rows] & rollout
-        if self.validity is not None:
+        if self.surrogate.validity is not None:
             info["validity"] = judged.validity[rows]
-        if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
+        if self.surrogate.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
             info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
         return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows])
 
@@ -349,8 +250,8 @@ class ModelEmitter(Emitter):
         were."""
         pool_size = pool.actions.shape[0]
         count = self._steered_count(pool_size, num)
-        jacobian = jax.vmap(jax.jacfwd(lambda a: self.predict(state, a, task)[0]))
-        quality_gradient = jax.vmap(jax.grad(lambda a: self.predict(state, a, task)[1]))
+        jacobian = jax.vmap(jax.jacfwd(lambda a: self.surrogate.predict(state.surrogate, a, task)[0]))
+        quality_gradient = jax.vmap(jax.grad(lambda a: self.surrogate.predict(state.surrogate, a, task)[1]))
         children, steering_parents = self.steering.steer(key, repertoire, jacobian, task, params, count,
                                                          quality_gradient)
         on = ~warm_up & (repertoire.count > 0)
@@ -368,22 +269,15 @@ class ModelEmitter(Emitter):
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
                repertoire: Repertoire, task: Task, params: Params) -> tuple[ModelEmitterState, dict[str, jax.Array]]:
         evaluations = state.evaluations + proposal.rollout.sum(dtype=jnp.int32)
-        rollouts, data = state.rollouts, repertoire
-        if self.training_data == "rollouts":
-            rollouts = data = archive_lib.push(state.rollouts, proposal.actions, evaluated.behaviors,
-                                               evaluated.qualities, evaluated.usable)
-        has_data = repertoire.count > 0 if self.training_data == "repertoire" else rollouts.total > 0
-        due = (evaluations >= self.warmup_samples) & has_data
-        with jax.named_scope("train"):
-            trained, loss = jax.lax.cond(
-                due, lambda: model.train(state.model, key, data, task, params.emitter.learning_rate,
-                                         self.batch_size, self.num_batches),
-                lambda: (state.model, jnp.float32(jnp.nan)))
+        both = proposal.info["both_behaviors"] if self.surrogate.anchoring == "auto" else None
+        surrogate, loss = self.surrogate.update(key, state.surrogate, evaluations >= self.warmup_samples,
+                                                proposal.actions, proposal.rollout, evaluated, both, repertoire, task,
+                                                params.emitter.surrogate)
         inner_proposal = Proposal(proposal.actions, proposal.rollout, proposal.info["inner"])
         inner, inner_metrics = self.inner.update(jax.random.fold_in(key, 1), state.inner, inner_proposal, evaluated,
                                                  repertoire, task, params.part(params.emitter.inner))
         metrics = {"discarded": proposal.info["discarded"], "model_loss": loss,
-                   "prediction_error": _prediction_error(proposal.info["predicted_behaviors"], evaluated),
+                   "prediction_error": prediction_error(proposal.info["predicted_behaviors"], evaluated),
                    "opener_auc": opener_auc(proposal.info["predicted_distance"], evaluated), **inner_metrics}
         fallback, was_warm_up = state.fallback, state.evaluations < self.warmup_samples
         if self.fallback is not None:
@@ -391,12 +285,9 @@ class ModelEmitter(Emitter):
             fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
                                     lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
                                                                  evaluated))
-        validity = state.validity
-        if self.validity is not None:
+        if self.surrogate.validity is not None:
             metrics["validity_auc"] = auc(proposal.info["validity"], proposal.rollout & evaluated.usable,
                                           proposal.rollout & ~evaluated.usable)
-            validity = self.validity.update(jax.random.fold_in(key, 3), state.validity, proposal.actions,
-                                            proposal.rollout, evaluated.usable, task, params.emitter.learning_rate)
         steering = state.steering
         if self.steering is not None:
             metrics["steered"] = proposal.info["steered"].sum(dtype=jnp.int32)
@@ -405,19 +296,14 @@ class ModelEmitter(Emitter):
             steering = jax.lax.cond(was_warm_up, lambda: state.steering,
                                     lambda: self._steering_pursuit.update(state.steering, proposal.info["steered"],
                                                                           evaluated))
-        anchor_errors = state.anchor_errors
-        if self.anchoring == "auto":
-            errors = jax.vmap(_prediction_error, in_axes=(0, None))(proposal.info["both_behaviors"], evaluated)
-            anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
-        return ModelEmitterState(model=trained, inner=inner, evaluations=evaluations, rollouts=rollouts,
-                                 fallback=fallback, anchor_errors=anchor_errors, steering=steering,
-                                 validity=validity), metrics
+        return ModelEmitterState(surrogate=surrogate, inner=inner, evaluations=evaluations, fallback=fallback,
+                                 steering=steering), metrics
 
     def _own_metrics(self) -> dict[str, Any]:
         return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32}),
                 **({} if self.steering is None else {"steered": jnp.int32}),
                 **({} if self._steering_pursuit is None else {"steering_share": jnp.float32}),
-                **({} if self.validity is None else {"validity_auc": jnp.float32})}
+                **({} if self.surrogate.validity is None else {"validity_auc": jnp.float32})}
 
     @property
     def _steering_pursuit(self) -> Fallback | None:
@@ -425,11 +311,6 @@ class ModelEmitter(Emitter):
 
     def metrics(self) -> dict[str, Any]:
         return {**self._own_metrics(), **self.inner.metrics()}
-
-    def predict(self, state: ModelEmitterState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
-        """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what skill adaptation uses; the
-        ensemble's mean, not anchored)."""
-        return model.predict(state.model, actions, task)
 
 
 def _share(rows: jax.Array, wanted: jax.Array, share: jax.Array, warm_up: jax.Array,
@@ -464,10 +345,3 @@ def auc(score: jax.Array, positive: jax.Array, negative: jax.Array) -> jax.Array
     wins = jnp.where(score[:, None] > score[None, :], 1.0, jnp.where(score[:, None] == score[None, :], 0.5, 0.0))
     n = pairs.sum()
     return jnp.where(n > 0, jnp.where(pairs, wins, 0.0).sum() / jnp.maximum(n, 1), jnp.nan)
-
-
-def _prediction_error(predicted: jax.Array, evaluated: Evaluated) -> jax.Array:
-    """Behavior MSE (real units) of predictions [P, d] on the usable rollouts; NaN if there is none."""
-    usable = evaluated.usable
-    sq_err = jnp.where(usable[:, None], (predicted - evaluated.behaviors) ** 2, 0.0).sum()
-    return jnp.where(usable.any(), sq_err / (usable.sum() * predicted.shape[-1]), jnp.nan)

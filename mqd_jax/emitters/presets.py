@@ -4,9 +4,10 @@ a gradient transformation).
     random()                                              -> Uniform()
     qd(iso_sigma, line_sigma)                             -> IsoLine()
     mqd(pool_factor=8, optimism=1.0, ...)                 -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
-                                                                          Diverse(...), anchoring="auto",
+                                                                          Diverse(...), Surrogate(anchoring="auto"),
                                                                           fallback=Fallback(), steering=Steering(...))
-    mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua))
+    mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua),
+                                                                          Surrogate())
                                                              (or Budgeted(pool_factor) when budgeted)
 
 Each preset's defaults are in its signature: the model's are Table II's 2D column (`TABLE_II` holds both
@@ -24,6 +25,7 @@ from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.emitters.baselines import IsoLine, Uniform
 from mqd_jax.emitters.model_emitter import Fallback, ModelEmitter
 from mqd_jax.emitters.steering import Steering
+from mqd_jax.surrogate.surrogate import Surrogate
 
 # Table II: the model's settings in the paper's two columns (the 2D column is every preset's default).
 TABLE_II = {
@@ -66,10 +68,10 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
     rule = Diverse(pool_factor, optimism, parent_weight=parent_weight, quality_share=quality_share)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
     scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
-    return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, k=k,
-                        hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
-                        num_batches=num_batches, learning_rate=learning_rate, warmup_samples=warmup_samples,
-                        anchoring="auto", anchor=anchor, fallback=Fallback(),
+    surrogate = Surrogate(hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
+                          num_batches=num_batches, learning_rate=learning_rate, anchoring="auto", anchor=anchor)
+    return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
+                        warmup_samples=warmup_samples, fallback=Fallback(),
                         steering=Steering(share=steering_share) if steering_share else None)
 
 
@@ -82,8 +84,9 @@ def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: boo
     if not isinstance(budgeted, bool):
         raise ValueError(f"mqd-paper: budgeted={budgeted!r} is invalid: expected a bool")
     rule = Budgeted(pool_factor, t_nov=t_nov) if budgeted else Threshold(t_nov=t_nov, t_qua=t_qua)
-    return ModelEmitter(IsoLine(iso_sigma=iso_sigma, line_sigma=line_sigma), rule, k=k, hidden_size=hidden_size,
-                        batch_size=batch_size, num_batches=num_batches, learning_rate=learning_rate,
+    surrogate = Surrogate(hidden_size=hidden_size, batch_size=batch_size, num_batches=num_batches,
+                          learning_rate=learning_rate)
+    return ModelEmitter(IsoLine(iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples)
 
 

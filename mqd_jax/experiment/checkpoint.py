@@ -10,9 +10,10 @@ revision). `save` writes a temporary file and renames it over the old one, so a
 crash leaves either the previous checkpoint or the new one, never half of one.
 `load` refuses, with a ValueError, a file that is not a checkpoint, is corrupt
 or was altered (checksum), and one written for another config, task or key.
-Files of the older formats 1 to 4 (1 and 2 without checksum; 1 to 3 with
+Files of the older formats 1 to 5 (1 and 2 without checksum; 1 to 3 with
 M-QD's model outside the emitter's state; 1 to 4 with one network where the
-model is now an ensemble) still load.
+model is now an ensemble; 1 to 5 with the model beside the emitter's other
+parts where its surrogate now holds it) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.experiment.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -39,7 +40,9 @@ from mqd_jax.core.run import State, check_state, get_task, init, run_generations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
-FORMAT = 5
+FORMAT = 6
+# The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`).
+_SURROGATE = ("model", "rollouts", "anchor_errors", "validity")
 Metrics = dict[str, np.ndarray]
 
 
@@ -62,7 +65,7 @@ def _from_format_3(state: dict[str, Any], fresh: dict[str, Any], cfg: Config) ->
         opt_state["count"] = old["steps"]
         # The rate `train` last set, for a run with the config's own params.
         opt_state["hyperparams"]["learning_rate"] = np.full_like(opt_state["hyperparams"]["learning_rate"],
-                                                                 cfg.emitter.learning_rate)
+                                                                 cfg.emitter.surrogate.learning_rate)
         model.update(params=old["params"], steps=old["steps"])
         emitter["evaluations"] = state["num_evaluations"]
     return {**state, "emitter": emitter}
@@ -83,6 +86,24 @@ def _from_format_4(state: dict[str, Any], fresh: dict[str, Any], batched: bool) 
     inner_state = {**model["opt_state"]["inner_state"], "0": adam}
     model.update(params=grow(model["params"]), opt_state={**model["opt_state"], "inner_state": inner_state})
     return {**state, "emitter": {**fresh["emitter"], **emitter, "model": model}}
+
+
+def _flat(emitter: Any) -> Any:
+    """A model emitter's state dict of format 6 as formats 4-5 held it: the surrogate's parts beside the rest."""
+    if not (isinstance(emitter, dict) and "surrogate" in emitter):
+        return emitter
+    return {**{k: v for k, v in emitter.items() if k != "surrogate"}, **emitter["surrogate"]}
+
+
+def _from_format_5(state: dict[str, Any]) -> dict[str, Any]:
+    """Formats 4-5 held the model, its rollout buffer, anchoring errors and validity classifier in the model
+    emitter's state; since format 6 its surrogate's state (`SurrogateState`) holds them."""
+    emitter = state["emitter"]
+    if not (isinstance(emitter, dict) and "model" in emitter):
+        return state
+    surrogate = {k: emitter[k] for k in _SURROGATE if k in emitter}
+    return {**state, "emitter": {**{k: v for k, v in emitter.items() if k not in _SURROGATE},
+                                 "surrogate": surrogate}}
 
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
@@ -147,9 +168,12 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     template = jax.eval_shape(start, key)
     if payload["format"] < FORMAT:
         fresh = serialization.to_state_dict(jax.device_get(start(key)))
+        fresh = {**fresh, "emitter": _flat(fresh["emitter"])}  # as formats 4-5 held it
         if payload["format"] < 4:
             payload["state"] = _from_format_3(payload["state"], fresh, cfg)
-        payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
+        if payload["format"] < 5:
+            payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
+        payload["state"] = _from_format_5(payload["state"])
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

@@ -1,0 +1,214 @@
+"""The surrogate: what M-QD's model knows and how it learns, as one part a `ModelEmitter` composes.
+
+`Surrogate` holds the forward model (`mqd_jax.surrogate.model`: one network or a
+vmapped ensemble), its training data (the repertoire, or a ring buffer of the
+latest usable rollouts), how its predictions are anchored, and an optional
+classifier of usable rollouts (`Validity`). It predicts (`members`,
+`predictions`, `chosen`, `predict`) and learns from a generation's rollouts
+(`update`); its one traced parameter is Adam's learning rate
+(`SurrogateParams`). What to do with the predictions (the inner emitter, the
+acquisition rule, fallback and steering) is the `ModelEmitter`'s.
+
+`anchoring`: "always" anchors a candidate's prediction at a repertoire skill
+a_j near it, whose true outcome is known: b~(a) = b(a_j) + phi(a) - phi(a_j),
+and likewise the quality. The model then only has to predict differences
+between nearby actions, which helps where behavior is smooth in the action and
+hurts across discontinuities (contact). "auto" keeps an exponential average
+(weight `ERROR_AVERAGING`) of both predictions' held-out behavior error on every
+generation's rollouts and uses the one whose average is lower (the plain one
+until both have one). `anchor` says which skill: "parent", the one the
+candidate was varied from, as the inner emitter names it (a candidate without
+one, -1, keeps its plain prediction; where the inner emitter names none, the
+nearest); "nearest", the skill nearest to it in normalized action space, found
+by a search over the repertoire.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from mqd_jax.core import archive as archive_lib
+from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.checks import check_traced, is_int, is_real
+from mqd_jax.core.emitter import Evaluated
+from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.task import Task
+from mqd_jax.surrogate import model
+from mqd_jax.surrogate.validity import Validity
+
+TRAINING_DATA = ("repertoire", "rollouts")
+ANCHORING = ("none", "always", "auto")
+ANCHORS = ("parent", "nearest")
+# The weight of a generation's held-out error in anchoring="auto"'s averages.
+ERROR_AVERAGING = 0.2
+
+
+@struct.dataclass
+class SurrogateParams:
+    """The surrogate's traced parameter: Adam's `learning_rate` (its validity classifier's too)."""
+
+    learning_rate: jax.Array
+
+
+@struct.dataclass
+class SurrogateState:
+    """What the surrogate carries from one generation to the next.
+
+    Attributes:
+      model: the forward model's parameters and optimizer state.
+      rollouts: the buffer of the latest usable rollouts the model trains on
+        (`archive.Archive` of `rollout_buffer` rows), or () when it trains on the repertoire.
+      anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
+        plain and the anchored predictions (NaN before the first); else ().
+      validity: `validity.ValidityState`, or () without a validity classifier.
+    """
+
+    model: model.ModelState
+    rollouts: Any = ()
+    anchor_errors: Any = ()
+    validity: Any = ()
+
+
+def running_average(average: jax.Array, value: jax.Array, weight: float, seen: jax.Array) -> jax.Array:
+    """An exponential average after one more value: (1 - weight) * average + weight * value where `seen`;
+    the value itself where the average is still NaN (none yet); the average unchanged where not `seen`."""
+    updated = jnp.where(jnp.isnan(average), value, (1 - weight) * average + weight * value)
+    return jnp.where(seen, updated, average)
+
+
+def prediction_error(predicted: jax.Array, evaluated: Evaluated) -> jax.Array:
+    """Behavior MSE (real units) of predictions [P, d] on the usable rollouts; NaN if there is none."""
+    usable = evaluated.usable
+    sq_err = jnp.where(usable[:, None], (predicted - evaluated.behaviors) ** 2, 0.0).sum()
+    return jnp.where(usable.any(), sq_err / (usable.sum() * predicted.shape[-1]), jnp.nan)
+
+
+@dataclasses.dataclass(frozen=True)
+class Surrogate:
+    """The forward model, its training data, anchoring and validity classifier.
+
+    Attributes:
+      hidden_size: the model's hidden units (per member).
+      ensemble_size: the members of the model's ensemble.
+      batch_size, num_batches: training mini-batches per generation (per member).
+      learning_rate: Adam's rate, the default of the traced `SurrogateParams.learning_rate`.
+      anchoring: "none", "always" or "auto" (see the module's doc).
+      anchor: "parent" or "nearest" (see the module's doc).
+      training_data: "repertoire" (its skills, as the paper) or "rollouts" (the latest
+        `rollout_buffer` usable rollouts, in a ring buffer).
+      rollout_buffer: the size of that buffer.
+      validity: a `Validity` classifier of usable rollouts that acquisition rules consult, or None.
+    """
+
+    hidden_size: int = 32
+    ensemble_size: int = 1
+    batch_size: int = 16
+    num_batches: int = 500
+    learning_rate: float = 1e-3
+    anchoring: str = "none"
+    anchor: str = "parent"
+    training_data: str = "repertoire"
+    rollout_buffer: int = 4096
+    validity: Validity | None = None
+
+    def __post_init__(self) -> None:
+        for name, lowest in (("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1), ("num_batches", 1),
+                             ("rollout_buffer", 1)):
+            value = getattr(self, name)
+            if not (is_int(value) and value >= lowest):
+                raise ValueError(f"Surrogate.{name}={value!r} is invalid: expected an int >= {lowest}")
+        if not (is_real(self.learning_rate) and self.learning_rate > 0):
+            raise ValueError(f"Surrogate.learning_rate={self.learning_rate!r} is invalid: expected a finite float > 0")
+        if self.anchoring not in ANCHORING:
+            raise ValueError(f"Surrogate.anchoring={self.anchoring!r} is invalid: expected one of {ANCHORING}")
+        if self.anchor not in ANCHORS:
+            raise ValueError(f"Surrogate.anchor={self.anchor!r} is invalid: expected one of {ANCHORS}")
+        if self.training_data not in TRAINING_DATA:
+            raise ValueError(f"Surrogate.training_data={self.training_data!r} is invalid: expected one of "
+                             f"{TRAINING_DATA}")
+        if self.validity is not None and not isinstance(self.validity, Validity):
+            raise ValueError(f"Surrogate.validity={self.validity!r} is invalid: expected None or a Validity")
+
+    def default_params(self) -> SurrogateParams:
+        return SurrogateParams(jnp.float32(self.learning_rate))
+
+    def check_params(self, params: SurrogateParams) -> None:
+        check_traced("Surrogate.params", "learning_rate", params.learning_rate, inclusive=False)
+
+    def init(self, key: jax.Array, task: Task) -> SurrogateState:
+        rollouts = (archive_lib.Archive.empty(self.rollout_buffer, task.action_dim, task.behavior_dim)
+                    if self.training_data == "rollouts" else ())
+        return SurrogateState(model=model.init(key, self.hidden_size, task, self.ensemble_size), rollouts=rollouts,
+                              anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else (),
+                              validity=() if self.validity is None else self.validity.init(
+                                  jax.random.fold_in(key, 3), task))
+
+    def members(self, state: SurrogateState, actions: jax.Array, task: Task) -> jax.Array:
+        """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n]. A subclass may
+        predict otherwise (an experiment's oracle returns the true outcomes)."""
+        return model.predict_members(state.model, actions, task)
+
+    def predict(self, state: SurrogateState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
+        """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what steering and skill
+        adaptation differentiate; the ensemble's mean, not anchored)."""
+        return model.predict(state.model, actions, task)
+
+    def predictions(self, state: SurrogateState, actions: jax.Array, repertoire: Repertoire, task: Task,
+                    parents: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
+        """The members' plain predictions [E, N, d + 1] of actions [N, n] and, unless `anchoring` is "none", the
+        anchored ones: at the parents' slots [N] (-1: not anchored) with anchor="parent" and parents given, else
+        at the nearest skills."""
+        plain = self.members(state, actions, task)
+        if self.anchoring == "none":
+            return plain, None
+        if self.anchor == "parent" and parents is not None:
+            anchor, anchored_rows = jnp.maximum(parents, 0), (parents >= 0)[:, None]
+        else:
+            units = lambda a: model.normalize_actions(a, task)  # noqa: E731
+            # Many action dimensions: distances by matrix product (an anchor need only be near, not exactly nearest).
+            _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
+            anchored_rows = repertoire.count > 0
+        known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
+        anchored = known + plain - self.members(state, repertoire.actions[anchor], task)
+        return plain, jnp.where(anchored_rows, anchored, plain)
+
+    def chosen(self, state: SurrogateState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
+        """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
+        whichever had the lower recent held-out error."""
+        if self.anchoring == "always":
+            return anchored
+        if self.anchoring == "auto":
+            return jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
+        return plain
+
+    def update(self, key: jax.Array, state: SurrogateState, due: jax.Array, actions: jax.Array, rollout: jax.Array,
+               evaluated: Evaluated, both_behaviors: jax.Array | None, repertoire: Repertoire, task: Task,
+               params: SurrogateParams) -> tuple[SurrogateState, jax.Array]:
+        """The surrogate after a generation's rollouts of actions [P] (`rollout` [P]: rolled out), and the mean
+        training loss (NaN when it did not train). Trains the model where `due` (and it has data) on the
+        repertoire or its rollout buffer, the validity classifier on the rollouts, and with anchoring "auto"
+        averages both predictions' held-out errors (`both_behaviors` [2, P, d]: the plain and the anchored)."""
+        rollouts, data = state.rollouts, repertoire
+        if self.training_data == "rollouts":
+            rollouts = data = archive_lib.push(state.rollouts, actions, evaluated.behaviors, evaluated.qualities,
+                                               evaluated.usable)
+        has_data = repertoire.count > 0 if self.training_data == "repertoire" else rollouts.total > 0
+        with jax.named_scope("train"):
+            trained, loss = jax.lax.cond(
+                due & has_data, lambda: model.train(state.model, key, data, task, params.learning_rate,
+                                                    self.batch_size, self.num_batches),
+                lambda: (state.model, jnp.float32(jnp.nan)))
+        validity = state.validity
+        if self.validity is not None:
+            validity = self.validity.update(jax.random.fold_in(key, 3), state.validity, actions, rollout,
+                                            evaluated.usable, task, params.learning_rate)
+        anchor_errors = state.anchor_errors
+        if self.anchoring == "auto":
+            errors = jax.vmap(prediction_error, in_axes=(0, None))(both_behaviors, evaluated)
+            anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
+        return SurrogateState(model=trained, rollouts=rollouts, anchor_errors=anchor_errors, validity=validity), loss
