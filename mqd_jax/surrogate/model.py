@@ -16,16 +16,18 @@ Training (`mqd_jax.emitters.model_emitter` calls it after every generation once 
 is over): `num_batches` Adam steps on the mean-squared error in normalized
 units, each member on its own `batch_size` rows drawn uniformly (with
 replacement) from the training data (the repertoire, or a buffer of rollouts).
+
+Flax's `linen` and optax are imported when a model is first built (`init`), so
+`import mqd_jax` does not pay for them in a run without a model.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import optax
 from flax import struct
 
 from mqd_jax.core.archive import Archive
@@ -33,16 +35,28 @@ from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
 
 
-class MLP(nn.Module):
-    """normalized actions [..., n] -> normalized (behavior, quality) [..., d + 1]."""
+@functools.cache
+def _mlp() -> type:
+    """The network's Flax module class (Flax's linen imported on first use)."""
+    import flax.linen as nn
 
-    hidden_size: int
-    out_size: int
+    class MLP(nn.Module):
+        """normalized actions [..., n] -> normalized (behavior, quality) [..., d + 1]."""
 
-    @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
-        x = nn.relu(nn.Dense(self.hidden_size)(x))
-        return jnp.tanh(nn.Dense(self.out_size)(x))
+        hidden_size: int
+        out_size: int
+
+        @nn.compact
+        def __call__(self, x: jax.Array) -> jax.Array:
+            x = nn.relu(nn.Dense(self.hidden_size)(x))
+            return jnp.tanh(nn.Dense(self.out_size)(x))
+
+    return MLP
+
+
+def mlp(hidden_size: int, out_size: int) -> Any:
+    """The network: one hidden layer of `hidden_size` ReLU units, `out_size` tanh outputs (a Flax module)."""
+    return _mlp()(hidden_size=hidden_size, out_size=out_size)
 
 
 @struct.dataclass
@@ -58,23 +72,28 @@ class ModelState:
     """
 
     params: Any
-    opt_state: optax.OptState
+    opt_state: Any
     steps: jax.Array
 
 
-# Adam with its learning rate in the optimizer state, so that `train` can set it from a traced `Params` value.
-# Its other hyperparameters stay Python constants, folded into the program as optax.adam's are.
-_OPTIMIZER = optax.inject_hyperparams(optax.adam, static_args=("b1", "b2", "eps", "eps_root"))(learning_rate=0.0)
+@functools.cache
+def _optimizer() -> Any:
+    """Adam with its learning rate in the optimizer state, so that `train` can set it from a traced parameter.
+    Its other hyperparameters stay Python constants, folded into the program as optax.adam's are."""
+    import optax
+
+    return optax.inject_hyperparams(optax.adam, static_args=("b1", "b2", "eps", "eps_root"))(learning_rate=0.0)
 
 
-def network(hidden_size: int, task: Task) -> MLP:
-    return MLP(hidden_size=hidden_size, out_size=task.behavior_dim + 1)
+def network(hidden_size: int, task: Task) -> Any:
+    """phi's network for `task`: d + 1 outputs."""
+    return mlp(hidden_size, task.behavior_dim + 1)
 
 
-def _network_of(model: ModelState) -> MLP:
+def _network_of(model: ModelState) -> Any:
     """The network `model`'s parameters belong to (its sizes read from their shapes)."""
     layers = model.params["params"]
-    return MLP(hidden_size=layers["Dense_0"]["bias"].shape[-1], out_size=layers["Dense_1"]["bias"].shape[-1])
+    return mlp(layers["Dense_0"]["bias"].shape[-1], layers["Dense_1"]["bias"].shape[-1])
 
 
 def _bounds(task: Task) -> tuple[jax.Array, jax.Array]:
@@ -105,11 +124,11 @@ def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1,
     """Random parameters of `ensemble_size` members (Flax's default initialisers, one key each) and a fresh Adam
     state. A single member is initialised from `key` itself. `out_size`: the outputs, d + 1 (phi) unless given
     (a network of the same kind that predicts something else, as `mqd_jax.surrogate.validity`'s classifier)."""
-    net = network(hidden_size, task) if out_size is None else MLP(hidden_size=hidden_size, out_size=out_size)
+    net = network(hidden_size, task) if out_size is None else mlp(hidden_size, out_size)
     x = jnp.zeros((1, task.action_dim), jnp.float32)
     keys = key[None] if ensemble_size == 1 else jax.random.split(key, ensemble_size)
     params = jax.vmap(lambda k: net.init(k, x))(keys)
-    return ModelState(params=params, opt_state=_OPTIMIZER.init(params), steps=jnp.int32(0))
+    return ModelState(params=params, opt_state=_optimizer().init(params), steps=jnp.int32(0))
 
 
 def ensemble_size(model: ModelState) -> int:
@@ -156,7 +175,9 @@ def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array
     """`train`'s steps on normalized inputs [R, n] and targets [R, out] whose first `filled` (>= 1) rows are data:
     mean-squared error, each member's rows drawn uniformly with replacement. Returns the new state and the mean
     loss over the steps and members."""
-    net = _network_of(model)
+    import optax
+
+    net, optimizer = _network_of(model), _optimizer()
     rows = jax.random.randint(key, (num_batches, ensemble_size(model), batch_size), 0, filled)
 
     def loss_fn(params: Any, idx: jax.Array) -> jax.Array:
@@ -164,10 +185,10 @@ def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array
         member_loss = jax.vmap(lambda p, i: ((net.apply(p, inputs[i]) - targets[i]) ** 2).mean())
         return member_loss(params, idx).sum()
 
-    def step(carry: tuple[Any, optax.OptState], idx: jax.Array) -> tuple[tuple[Any, optax.OptState], jax.Array]:
+    def step(carry: tuple[Any, Any], idx: jax.Array) -> tuple[tuple[Any, Any], jax.Array]:
         params, opt_state = carry
         loss, grads = jax.value_and_grad(loss_fn)(params, idx)
-        updates, opt_state = _OPTIMIZER.update(grads, opt_state, params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), opt_state), loss
 
     hyperparams = {**model.opt_state.hyperparams, "learning_rate": jnp.asarray(learning_rate, jnp.float32)}
