@@ -27,9 +27,7 @@ For each task and composition, from the mean over seeds of coverage [G] and roll
 The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
 of the model's predictions: the ceiling of what a better model could buy.
 
-`--tasks arm` is a task none of this was tuned on, defined here: the classic QD benchmark of a
-planar arm with 10 joints (angles in [-pi/2, pi/2], links 0.05 long from the centre of the unit
-square); behavior = the tip's position, quality = minus the angles' standard deviation.
+`--tasks arm`, `rugged_arm` and `rastrigin` are tasks none of this was tuned on (`extra_tasks.py`).
 
 Writes a markdown table (`--out`), the mean curves as JSON beside it and a figure of coverage
 against rollouts per task (`--figure`).
@@ -50,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
+from extra_tasks import register_experiment_tasks
 
 from mqd_jax import Config, Surrogate
 from mqd_jax.core import algorithms, registry
@@ -72,71 +71,6 @@ class Oracle(Surrogate):
         behaviors, qualities, valid = task.evaluate(actions, jax.random.PRNGKey(0))
         outcome = jnp.concatenate([behaviors, qualities[:, None]], axis=-1).astype(jnp.float32)
         return jnp.where(valid[:, None], outcome, jnp.nan)[None]
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class PlanarArm(Task):
-    """A planar arm of n joints in the unit square: behavior = tip position, quality = -std of the angles."""
-
-    quality_range = (-1.6, 0.0)
-
-    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        n = actions.shape[1]
-        heading = jnp.cumsum(actions, axis=1)
-        tip = 0.5 + 0.5 / n * jnp.stack([jnp.cos(heading).sum(1), jnp.sin(heading).sum(1)], axis=1)
-        return tip, -jnp.std(actions, axis=1), jnp.ones(actions.shape[0], bool)
-
-    def reachable(self, points: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(points - 0.5, axis=-1) <= 0.5
-
-
-def make_arm(joints: int = 10) -> PlanarArm:
-    return PlanarArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class RuggedArm(PlanarArm):
-    """The planar arm with every angle 25 x its action (wrapped around the circle): a behavior that changes
-    quickly and repeatedly along every action axis, where a model learns little (the safety check)."""
-
-    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        angles = jnp.angle(jnp.exp(25j * actions))  # in (-pi, pi]
-        tip, _, valid = super().evaluate(angles, key)
-        return tip, -jnp.std(actions, axis=1), valid
-
-
-def make_rugged_arm(joints: int = 10) -> RuggedArm:
-    return RuggedArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class RastriginProjection(Task):
-    """QD's Rastrigin projection (a classic benchmark, after QDax's rastrigin_proj): x in [-5.12, 5.12]^n,
-    behavior = the means of x's two halves mapped to [0, 1]^2, quality = -Rastrigin(x) / Rastrigin's largest
-    value. A uniform action's means lie near the centre; the edges need a half of x moved together."""
-
-    quality_range = (-1.0, 0.0)
-
-    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        n, bound = actions.shape[1], 5.12
-        halves = jnp.stack([actions[:, : n // 2].mean(1), actions[:, n // 2:].mean(1)], axis=1)
-        rastrigin = 10.0 * n + (actions**2 - 10.0 * jnp.cos(2 * jnp.pi * actions)).sum(1)
-        return (halves / bound + 1.0) / 2.0, -rastrigin / (n * (bound**2 + 20.0)), jnp.ones(actions.shape[0], bool)
-
-
-def make_rastrigin(dims: int = 20) -> RastriginProjection:
-    return RastriginProjection((-5.12,) * dims, (5.12,) * dims, (0.0, 0.0), (1.0, 1.0))
-
-
-# Tasks defined here, registered by the experiments that name them.
-EXPERIMENT_TASKS = {"arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin}
-
-
-def register_experiment_tasks(tasks: list[str]) -> None:
-    """Registers the tasks of `EXPERIMENT_TASKS` among `tasks` that are not registered yet."""
-    for name in tasks:
-        if name in EXPERIMENT_TASKS and not registry.is_task(name):
-            registry.register(name, EXPERIMENT_TASKS[name])
 
 
 # The compositions the report's tables still show: the presets and the oracle. The compositions that stood for

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
-from sample_efficiency import register_experiment_tasks
+from extra_tasks import register_experiment_tasks
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core import selection

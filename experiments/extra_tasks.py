@@ -1,0 +1,83 @@
+"""Tasks none of the library was tuned on, for the experiments: registered by the scripts that name them.
+
+* `arm`: the classic QD benchmark of a planar arm with 10 joints (angles in [-pi/2, pi/2], links 0.05 long from
+  the centre of the unit square); behavior = the tip's position, quality = minus the angles' standard deviation.
+* `rugged_arm`: the arm with every angle 25 x its action: a behavior that changes quickly along every action axis.
+* `rastrigin`: QD's Rastrigin projection (20 dimensions).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mqd_jax.core import registry
+from mqd_jax.core.task import Task
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlanarArm(Task):
+    """A planar arm of n joints in the unit square: behavior = tip position, quality = -std of the angles."""
+
+    quality_range = (-1.6, 0.0)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        n = actions.shape[1]
+        heading = jnp.cumsum(actions, axis=1)
+        tip = 0.5 + 0.5 / n * jnp.stack([jnp.cos(heading).sum(1), jnp.sin(heading).sum(1)], axis=1)
+        return tip, -jnp.std(actions, axis=1), jnp.ones(actions.shape[0], bool)
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(points - 0.5, axis=-1) <= 0.5
+
+
+def make_arm(joints: int = 10) -> PlanarArm:
+    return PlanarArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RuggedArm(PlanarArm):
+    """The planar arm with every angle 25 x its action (wrapped around the circle): a behavior that changes
+    quickly and repeatedly along every action axis, where a model learns little (the safety check)."""
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        angles = jnp.angle(jnp.exp(25j * actions))  # in (-pi, pi]
+        tip, _, valid = super().evaluate(angles, key)
+        return tip, -jnp.std(actions, axis=1), valid
+
+
+def make_rugged_arm(joints: int = 10) -> RuggedArm:
+    return RuggedArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RastriginProjection(Task):
+    """QD's Rastrigin projection (a classic benchmark, after QDax's rastrigin_proj): x in [-5.12, 5.12]^n,
+    behavior = the means of x's two halves mapped to [0, 1]^2, quality = -Rastrigin(x) / Rastrigin's largest
+    value. A uniform action's means lie near the centre; the edges need a half of x moved together."""
+
+    quality_range = (-1.0, 0.0)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        n, bound = actions.shape[1], 5.12
+        halves = jnp.stack([actions[:, : n // 2].mean(1), actions[:, n // 2:].mean(1)], axis=1)
+        rastrigin = 10.0 * n + (actions**2 - 10.0 * jnp.cos(2 * jnp.pi * actions)).sum(1)
+        return (halves / bound + 1.0) / 2.0, -rastrigin / (n * (bound**2 + 20.0)), jnp.ones(actions.shape[0], bool)
+
+
+def make_rastrigin(dims: int = 20) -> RastriginProjection:
+    return RastriginProjection((-5.12,) * dims, (5.12,) * dims, (0.0, 0.0), (1.0, 1.0))
+
+
+# Tasks defined here, registered by the experiments that name them.
+EXPERIMENT_TASKS = {"arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin}
+
+
+def register_experiment_tasks(tasks: list[str]) -> None:
+    """Registers the tasks of `EXPERIMENT_TASKS` among `tasks` that are not registered yet."""
+    for name in tasks:
+        if name in EXPERIMENT_TASKS and not registry.is_task(name):
+            registry.register(name, EXPERIMENT_TASKS[name])
