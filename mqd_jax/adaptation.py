@@ -32,9 +32,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
-from mqd_jax.core import neighbours
+from mqd_jax.core import neighbours, pytree
 from mqd_jax.core.checks import check_traced, is_int
 from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, check_state, get_task
@@ -47,7 +46,7 @@ METHODS = ("nearest", "linear", "model")
 STEP_SIZE, STEPS = 0.1, 10
 
 
-@struct.dataclass
+@pytree.dataclass
 class Adapted:
     """The outcome for G goals.
 

@@ -79,3 +79,14 @@ def test_the_imports_have_no_circle():
 def test_no_import_hides_under_type_checking():
     hidden = [name for name, path in modules().items() if "TYPE_CHECKING" in path.read_text()]
     assert not hidden
+
+
+def test_importing_mqd_jax_leaves_flax_optax_and_the_tooling_out():
+    """flax and optax are imported where a model is first built or a checkpoint written, not by `import mqd_jax`."""
+    import subprocess
+    import sys
+
+    code = ("import sys, mqd_jax; print(sorted({m.split('.')[0] for m in sys.modules} & {'flax', 'optax', "
+            "'matplotlib'}), sorted(m for m in sys.modules if m.startswith('mqd_jax.experiment')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["[]", "[]"]

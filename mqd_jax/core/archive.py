@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from flax import struct
+
+from mqd_jax.core import pytree
 
 
-@struct.dataclass
+@pytree.dataclass
 class Archive:
     """Ring buffer of rejected and replaced skills.
 

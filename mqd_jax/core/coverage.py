@@ -15,10 +15,11 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
+
+from mqd_jax.core import pytree
 
 
-@struct.dataclass
+@pytree.dataclass
 class CoverageGrid:
     """Disk counts over the behavior box.
 
@@ -32,9 +33,9 @@ class CoverageGrid:
 
     counts: jax.Array
     reachable: jax.Array
-    low: tuple[float, float] = struct.field(pytree_node=False)
-    high: tuple[float, float] = struct.field(pytree_node=False)
-    reach: int = struct.field(pytree_node=False)
+    low: tuple[float, float] = pytree.field(pytree_node=False)
+    high: tuple[float, float] = pytree.field(pytree_node=False)
+    reach: int = pytree.field(pytree_node=False)
 
 
 def cell_centres(low: np.ndarray, high: np.ndarray, resolution: int) -> np.ndarray:

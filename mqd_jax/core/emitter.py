@@ -34,14 +34,14 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from mqd_jax.core import pytree
 from mqd_jax.core.params import Params
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
 
 
-@struct.dataclass
+@pytree.dataclass
 class Proposal:
     """What `Emitter.propose` returns (num candidates).
 
@@ -64,7 +64,7 @@ class Proposal:
     parents: jax.Array | None = None
 
 
-@struct.dataclass
+@pytree.dataclass
 class Evaluated:
     """A proposal's outcome, as `Emitter.update` sees it (num candidates).
 

@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
-from mqd_jax.core import batching
+from mqd_jax.core import batching, pytree
 
 _BLOCK = 32
 
@@ -77,7 +76,7 @@ def k_smallest(values: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
     return _passes(picked, picked_cols.astype(jnp.int32), k)
 
 
-@struct.dataclass
+@pytree.dataclass
 class NeighbourLists:
     """Per-skill nearest-neighbour lists over a repertoire of capacity C.
 

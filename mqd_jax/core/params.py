@@ -14,10 +14,11 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-from flax import struct
+
+from mqd_jax.core import pytree
 
 
-@struct.dataclass
+@pytree.dataclass
 class Params:
     """Traced parameters of a run.
 

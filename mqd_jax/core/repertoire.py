@@ -25,9 +25,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
-from mqd_jax.core import batching, neighbours
+from mqd_jax.core import batching, neighbours, pytree
 
 # Nearest pre-generation skills precomputed per candidate before the sequential rule (`insert`'s num_near).
 NUM_NEAR = 4
@@ -43,7 +42,7 @@ class AddStatus(enum.IntEnum):
     DROPPED_FULL = 4  # a new niche that did not fit: the repertoire was full
 
 
-@struct.dataclass
+@pytree.dataclass
 class Repertoire:
     """A fixed-capacity repertoire of C skills (a = action, b = behavior, q = quality).
 
@@ -79,7 +78,7 @@ class Repertoire:
         return self.qualities.shape[0]
 
 
-@struct.dataclass
+@pytree.dataclass
 class Insertion:
     """What one generation's insertion did, per candidate (P candidates).
 

@@ -18,10 +18,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from mqd_jax.core import archive as archive_lib
-from mqd_jax.core import coverage, diagnostics, registry, repertoire
+from mqd_jax.core import coverage, diagnostics, pytree, registry, repertoire
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.emitter import Evaluated, Proposal
 from mqd_jax.core.params import Params
@@ -38,7 +37,7 @@ METRICS = {
 }
 
 
-@struct.dataclass
+@pytree.dataclass
 class State:
     """Everything a run carries from one generation to the next.
 
@@ -154,7 +153,7 @@ def check_state(state: State, cfg: Config, batch: tuple[int, ...] = (), fields: 
                          f"algorithm {cfg.algorithm_name!r} {cfg.options}): {why}")
 
 
-@struct.dataclass
+@pytree.dataclass
 class Candidates:
     """A generation's candidates, as `ask` hands them to an evaluator (P = population size).
 

@@ -36,9 +36,9 @@ from typing import Any, Protocol
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from mqd_jax.core import neighbours as neighbours_lib
+from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.params import Params
@@ -66,7 +66,7 @@ def scores_of_neighbours(sq: jax.Array, slots: jax.Array, pred_qualities: jax.Ar
     return novelty, improvement
 
 
-@struct.dataclass
+@pytree.dataclass
 class Judged:
     """The model's view of a pool of N candidates.
 
@@ -131,7 +131,7 @@ def ranking(novelty: jax.Array, improvement: jax.Array, t_nov: jax.Array, wanted
     return jnp.lexsort((-improvement, -primary, ~plausible, ~novel, ~wanted)).astype(jnp.int32)
 
 
-@struct.dataclass
+@pytree.dataclass
 class ThresholdParams:
     """The paper's thresholds, traced: predicted novelty `t_nov` and predicted quality improvement `t_qua`."""
 
@@ -180,7 +180,7 @@ def _check_thresholds(rule: object, names: tuple[str, ...]) -> None:
             raise ValueError(f"{type(rule).__name__}.{name}={value!r} is invalid: expected {expected}")
 
 
-@struct.dataclass
+@pytree.dataclass
 class BudgetedParams:
     """Budgeted's traced parameter: the predicted novelty `t_nov` above which a candidate ranks as novel."""
 

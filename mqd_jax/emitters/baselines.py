@@ -7,9 +7,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
-from mqd_jax.core import selection, variation
+from mqd_jax.core import pytree, selection, variation
 from mqd_jax.core.checks import check_traced, is_real
 from mqd_jax.core.emitter import Emitter, Proposal, action_bounds
 from mqd_jax.core.params import Params
@@ -32,7 +31,7 @@ class Uniform(Emitter):
                         parents=jnp.full(num, -1, jnp.int32))
 
 
-@struct.dataclass
+@pytree.dataclass
 class IsoLineParams:
     """IsoLine's traced parameters: the iso step `iso_sigma` (x the action range) and the line step `line_sigma`."""
 

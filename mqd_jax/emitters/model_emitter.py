@@ -38,8 +38,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.emitter import Emitter, Evaluated, Proposal
@@ -55,7 +55,7 @@ _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error
             "opener_auc": jnp.float32}
 
 
-@struct.dataclass
+@pytree.dataclass
 class ModelEmitterParams:
     """A `ModelEmitter`'s traced parameters: its parts' own (the surrogate's learning rate, the inner emitter's
     and the acquisition rule's)."""
@@ -65,7 +65,7 @@ class ModelEmitterParams:
     acquisition: Any = ()
 
 
-@struct.dataclass
+@pytree.dataclass
 class ModelEmitterState:
     """The wrapper's state.
 

@@ -7,14 +7,14 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from mqd_jax.core import pytree
 from mqd_jax.core.checks import is_real
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import AddStatus
 
 
-@struct.dataclass
+@pytree.dataclass
 class FallbackState:
     """Adaptive pursuit's state.
 

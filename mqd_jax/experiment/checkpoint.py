@@ -22,6 +22,7 @@ every state array carrying a leading [S] axis.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 from collections.abc import Callable
@@ -32,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from mqd_jax.core import diagnostics
+from mqd_jax.core import diagnostics, pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params, upgraded
 from mqd_jax.core.params import Params
@@ -44,6 +45,32 @@ FORMAT = 6
 # The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`).
 _SURROGATE = ("model", "rollouts", "anchor_errors", "validity")
 Metrics = dict[str, np.ndarray]
+
+
+_REGISTERED: set[type] = set()
+
+
+def _register_pytrees() -> None:
+    """Registers mqd-jax's pytree dataclasses (`mqd_jax.core.pytree`) with flax's serialization as flax
+    registers its own: each as the dict of its pytree fields (so the files are those flax dataclasses made)."""
+    for cls in pytree.CLASSES:
+        if cls in _REGISTERED:
+            continue
+        names = [f.name for f in dataclasses.fields(cls) if f.metadata.get("pytree_node", True)]
+
+        def to_state_dict(x: Any, names: list[str] = names) -> dict[str, Any]:
+            return {name: serialization.to_state_dict(getattr(x, name)) for name in names}
+
+        def from_state_dict(x: Any, state: dict[str, Any], names: list[str] = names) -> Any:
+            missing, unknown = set(names) - set(state), set(state) - set(names)
+            if missing or unknown:
+                raise ValueError(f"{type(x).__name__}: missing fields {sorted(missing)}, unknown fields "
+                                 f"{sorted(unknown)}")
+            return x.replace(**{name: serialization.from_state_dict(getattr(x, name), state[name], name=name)
+                                for name in names})
+
+        serialization.register_serialization_state(cls, to_state_dict, from_state_dict)
+        _REGISTERED.add(cls)
 
 
 def _from_format_1(state: dict[str, Any]) -> dict[str, Any]:
@@ -108,6 +135,7 @@ def _from_format_5(state: dict[str, Any]) -> dict[str, Any]:
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
+    _register_pytrees()
     body = serialization.msgpack_serialize({
         "config": cfg.to_dict(),
         "key": np.asarray(key),
@@ -163,6 +191,7 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     if not np.array_equal(payload["key"], np.asarray(key)):
         raise Refused(path, "it was written by a run started from another key")
     key = np.asarray(key)
+    _register_pytrees()
     # Shapes only; a batch of runs (keys [S, 2]) saved its states with a leading [S] axis.
     start = (lambda k: init(k, cfg)) if key.ndim == 1 else jax.vmap(lambda k: init(k, cfg))
     template = jax.eval_shape(start, key)

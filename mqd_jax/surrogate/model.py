@@ -28,8 +28,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from mqd_jax.core import pytree
 from mqd_jax.core.archive import Archive
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
@@ -59,7 +59,7 @@ def mlp(hidden_size: int, out_size: int) -> Any:
     return _mlp()(hidden_size=hidden_size, out_size=out_size)
 
 
-@struct.dataclass
+@pytree.dataclass
 class ModelState:
     """The model's parameters and optimizer state.
 

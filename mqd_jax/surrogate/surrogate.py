@@ -30,9 +30,9 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from mqd_jax.core import archive as archive_lib
+from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.emitter import Evaluated
@@ -48,14 +48,14 @@ ANCHORS = ("parent", "nearest")
 ERROR_AVERAGING = 0.2
 
 
-@struct.dataclass
+@pytree.dataclass
 class SurrogateParams:
     """The surrogate's traced parameter: Adam's `learning_rate` (its validity classifier's too)."""
 
     learning_rate: jax.Array
 
 
-@struct.dataclass
+@pytree.dataclass
 class SurrogateState:
     """What the surrogate carries from one generation to the next.
 

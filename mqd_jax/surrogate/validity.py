@@ -24,15 +24,15 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from mqd_jax.core import archive as archive_lib
+from mqd_jax.core import pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.task import Task
 from mqd_jax.surrogate import model
 
 
-@struct.dataclass
+@pytree.dataclass
 class ValidityState:
     """The classifier's state.
 
