@@ -7,7 +7,8 @@
     mqd render DIR [--index N | --goal X Y] [--out FILE.gif]
 
 `run` and `sweep` print a progress line per chunk of generations and a final
-summary; every Config field has a flag (`--t-nov 0.05`, `--budgeted`). A
+summary; every Config field has a flag (`--t-dist 0.03`, `--population 50`) and
+a preset's options are `--algorithm-option NAME=VALUE` (`-O pool_factor=16`). A
 results folder belongs to one config (`mqd_jax.experiment.folders`): another config is
 refused unless `--overwrite`, and one command at a time writes it. Compiled
 programs are kept in a persistent cache (`compilation_cache`), so a second
@@ -294,8 +295,9 @@ def _sweep(args: argparse.Namespace) -> None:
     with folders.lock(args.out) as leftovers:
         _say_removed(leftovers, "left by an interrupted writer")
         _say_removed(folders.claim(args.out, "sweep", {}, results.files(), args.overwrite), "--overwrite")
-        # Every conflict is found before anything runs, not after hours of other batches.
-        clash = results.conflicts(args.out, batches)
+        # Every conflict is found before anything runs, not after hours of other batches: one read of the folder.
+        found, damaged = results.scan(args.out)
+        clash = results.conflicts(found, batches)
         differ = {s: c for s, c in clash.items() if not c.stale}
         stale = {s: c for s, c in clash.items() if c.stale}
         if differ and not args.overwrite:
@@ -308,8 +310,9 @@ def _sweep(args: argparse.Namespace) -> None:
         _say_removed(results.remove_batches(list(stale)), "stale (another implementation)")
         if clash:  # the tables and figures describe removed runs
             results.remove_derived(args.out)
+        found = [(stem, saved) for stem, saved in found if stem not in clash]
         planned = {results.stem(args.out, cfg) for cfg, _ in batches}
-        for stem, e in results.scan(args.out)[1].items():
+        for stem, e in damaged.items():
             if stem in planned:
                 kept = folders.set_aside(results.batch_files(stem))
                 print(f"{e}\nits batch is run again; its files are kept as {', '.join(kept)}")
@@ -317,7 +320,7 @@ def _sweep(args: argparse.Namespace) -> None:
                 print(f"warning: {e}")
         for cfg, keys in batches:
             label = f"{cfg.task} {cfg.algorithm}, {len(keys)} seeds: "
-            if results.is_done(args.out, cfg, keys):
+            if results.is_done(found, args.out, cfg, keys):
                 print(f"{label}already in {args.out}, skipped")
                 continue
             progress = _Progress(label, cfg.max_generations)

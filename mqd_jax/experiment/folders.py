@@ -243,7 +243,7 @@ def _manifest(folder: str) -> dict[str, Any] | None:
 
 def _record(folder: str, name: str) -> None:
     """Adds `name` to the files the manifest of `folder` lists as written by mqd-jax (if it has a manifest)."""
-    if name in (MANIFEST, LOCK) or not os.path.exists(os.path.join(folder, MANIFEST)):
+    if name in (MANIFEST, LOCK):
         return
     saved = _manifest(folder)
     if saved is not None and name not in saved["written"]:
@@ -251,9 +251,10 @@ def _record(folder: str, name: str) -> None:
         write_json(os.path.join(folder, MANIFEST), saved)
 
 
-def written(folder: str) -> list[str]:
-    """The names of the files in `folder` that mqd-jax wrote there (its manifest's list; [] without one)."""
-    saved = _manifest(folder)
+def written(folder: str, saved: dict[str, Any] | None = None) -> list[str]:
+    """The names of the files in `folder` that mqd-jax wrote there (its manifest's list, read unless `saved`
+    gives it; [] without one)."""
+    saved = _manifest(folder) if saved is None else saved
     return [] if saved is None else [n for n in saved["written"] if os.path.exists(os.path.join(folder, n))]
 
 
@@ -306,11 +307,12 @@ def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequenc
             raise
         print(f"{e.path}: damaged manifest; --overwrite removes only the files mqd-jax recognisably wrote")
         saved = None
+    named = _matching(folder, patterns)
     if saved is not None:
-        ours = written(folder)
+        ours = written(folder, saved)
     else:
-        ours = [n for n in _matching(folder, patterns) if _carries_provenance(os.path.join(folder, n))]
-    foreign = [n for n in _matching(folder, patterns) if n not in ours and n != MANIFEST]
+        ours = [n for n in named if _carries_provenance(os.path.join(folder, n))]
+    foreign = [n for n in named if n not in ours and n != MANIFEST]
     if foreign:
         raise ValueError(f"{folder!r} refused: {', '.join(foreign)} {'is' if len(foreign) == 1 else 'are'} not "
                          "written by mqd-jax here (not in its manifest mqd.json) but named like its results: move "

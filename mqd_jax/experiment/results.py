@@ -62,17 +62,22 @@ from mqd_jax.version import __version__
 NAMES = {"mqd": "M-QD", "mqd-paper": "M-QD (paper's filter)", "qd": "QD", "random": "RANDOM"}
 # The paper's name (`Task.paper_coverage`'s key) of each preset that reproduces one of its algorithms.
 PAPER_ALGORITHM = {"mqd-paper": "mqd", "qd": "qd", "random": "random"}
-# The files a sweep folder holds (glob patterns, for `folders.claim`), and those made from them.
+# The tables and figures made from a sweep folder's files.
 DERIVED = ("table1.md", "adaptation.md", "fig2_*.png", "fig3_adaptation_error.png", "fig4_adaptation_steps.png")
 ADAPTATION = "adaptation.json"
+# What a batch's JSON holds besides its metrics.
+BATCH_KEYS = ("config", "keys", "implementation", "provenance", "wall_s", "machine", "metrics")
+
+
+def _batch_patterns(task: str = "*") -> list[str]:
+    """Glob patterns of the batches' JSON and npz files (of one task, or of all)."""
+    return [f"{glob.escape(file_name(task)) if task != '*' else '*'}_{a}.{ext}" for a in algorithms.names()
+            for ext in ("json", "npz")]
 
 
 def files() -> tuple[str, ...]:
     """The files a sweep folder holds (glob patterns, for `folders.claim`) and those made from them."""
-    return (*(f"*_{a}.{ext}" for a in algorithms.names() for ext in ("json", "npz")), "*_mqd.msgpack", ADAPTATION,
-            *DERIVED)
-# What a batch's JSON holds besides its metrics.
-BATCH_KEYS = ("config", "keys", "implementation", "provenance", "wall_s", "machine", "metrics")
+    return (*_batch_patterns(), "*_mqd.msgpack", ADAPTATION, *DERIVED)
 
 
 def write_markdown(lines: list[str], path: str) -> None:
@@ -133,12 +138,13 @@ def _read_batch(out: str, stem: str) -> dict[str, Any]:
     return saved
 
 
-def scan(out: str) -> tuple[list[tuple[str, dict[str, Any]]], dict[str, Damaged]]:
-    """The batches in `out`: [(stem, saved JSON)] of the sound ones, and {stem: Damaged} of the damaged ones (a
-    file unreadable, missing, altered, or without checksum)."""
+def scan(out: str, task: str = "*") -> tuple[list[tuple[str, dict[str, Any]]], dict[str, Damaged]]:
+    """The batches in `out` (of one task, or of all): [(stem, saved JSON)] of the sound ones, and {stem: Damaged}
+    of the damaged ones (a file unreadable, missing, altered, or without checksum). Reads and verifies every file
+    of them: scan once, and pass the batches on (`conflicts`, `is_done`)."""
     found, damaged = [], {}
-    patterns = [f"*_{a}.{ext}" for a in algorithms.names() for ext in ("json", "npz")]
-    names = {os.path.basename(p) for pattern in patterns for p in glob.glob(os.path.join(glob.escape(out), pattern))}
+    names = {os.path.basename(p) for pattern in _batch_patterns(task)
+             for p in glob.glob(os.path.join(glob.escape(out), pattern))}
     for stem in sorted({os.path.join(out, n.rsplit(".", 1)[0]) for n in names}, key=lambda s: s + ".json"):
         try:
             found.append((stem, _read_batch(out, stem)))
@@ -183,12 +189,11 @@ def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], key
     return found
 
 
-def conflicts(out: str, planned: list[tuple[Config, np.ndarray]]) -> dict[str, Clash]:
-    """{stem: Clash} for each sound batch in `out` that one of the `planned` batches (config, keys) may not sit
-    beside: the batches of one task must share their config (the algorithm aside), their keys and their
-    implementation. Reads the folder once, however many batches are planned.
+def conflicts(batches: list[tuple[str, dict[str, Any]]], planned: list[tuple[Config, np.ndarray]]) -> dict[str, Clash]:
+    """{stem: Clash} for each of a folder's sound `batches` (`scan`) that one of the `planned` batches (config,
+    keys) may not sit beside: the batches of one task must share their config (the algorithm aside), their keys
+    and their implementation.
     """
-    batches, _ = scan(out)
     return {stem: clash for cfg, keys in planned
             for stem, clash in _clashes(batches, cfg.to_dict(), np.asarray(keys).tolist(), implementation(cfg)).items()}
 
@@ -213,16 +218,11 @@ def remove_batches(stems: list[str]) -> list[str]:
     return removed
 
 
-def is_done(out: str, cfg: Config, keys: np.ndarray) -> bool:
-    """Whether `out` holds the sound runs of `cfg` from exactly these keys, made by this implementation."""
-    stem = _stem(out, cfg.task_name, cfg.algorithm_name)
-    if not os.path.exists(stem + ".json"):
-        return False
-    try:
-        saved = _read_batch(out, stem)
-    except Damaged:
-        return False
-    return (saved["config"] == cfg.to_dict() and saved["keys"] == np.asarray(keys).tolist()
+def is_done(batches: list[tuple[str, dict[str, Any]]], out: str, cfg: Config, keys: np.ndarray) -> bool:
+    """Whether a folder's sound `batches` (`scan(out)`) hold the runs of `cfg` from exactly these keys, made by
+    this implementation."""
+    saved = dict(batches).get(stem(out, cfg))
+    return (saved is not None and saved["config"] == cfg.to_dict() and saved["keys"] == np.asarray(keys).tolist()
             and saved["implementation"] == implementation(cfg))
 
 
@@ -245,22 +245,22 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
     if cfg.algorithm not in algorithms.names() or registry.name_of(cfg.task) is None:
         raise ValueError(f"a results folder holds the algorithms {algorithms.names()} of registered tasks, not "
                          f"{cfg.algorithm!r} on {cfg.task!r}: save such runs with mqd_jax.experiment.checkpoint.save")
-    clash = conflicts(out, [(cfg, keys)])
+    clash = conflicts(scan(out, cfg.task_name)[0], [(cfg, keys)])
     if clash:
         raise ValueError(f"{out!r} refused: {describe(clash)}")
     os.makedirs(out, exist_ok=True)
     remove_derived(out)
-    stem = _stem(out, cfg.task_name, cfg.algorithm_name)
+    path = stem(out, cfg)
     meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "implementation": implementation(cfg),
             "provenance": provenance()}
     rep = jax.device_get(states.repertoire)
     m = max(int(rep.count.max()), 1)
-    write_npz(stem + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
+    write_npz(path + ".npz", count=rep.count, actions=rep.actions[:, :m], behaviors=rep.behaviors[:, :m],
               qualities=rep.qualities[:, :m], meta=np.asarray(json.dumps(meta)))
     if cfg.algorithm == "mqd":
-        checkpoint.save(stem + ".msgpack", states, metrics, cfg, keys)
-    # The JSON last: its presence marks the runs as complete (`is_done`).
-    write_json(stem + ".json", {**meta, "wall_s": wall_s, "machine": machine(), "metrics": metrics})
+        checkpoint.save(path + ".msgpack", states, metrics, cfg, keys)
+    # The JSON last: a batch without it is not complete (`scan` reports it damaged, and a sweep runs it again).
+    write_json(path + ".json", {**meta, "wall_s": wall_s, "machine": machine(), "metrics": metrics})
 
 
 @dataclasses.dataclass(frozen=True)
