@@ -10,6 +10,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import jax
+import numpy as np
+
 
 def is_int(value: Any) -> bool:
     """An int, not a bool (True is an int to Python, but never a count or a size here)."""
@@ -29,9 +32,6 @@ def check_traced(owner: str, name: str, value: Any, lowest: float = 0.0, inclusi
     Traced values (inside a user's `jit` or `vmap`) cannot be read and are not checked. Batched values (a sweep's
     [R]) are checked element by element; the message gives the first bad one.
     """
-    import jax
-    import numpy as np
-
     if isinstance(value, jax.core.Tracer):
         return
     v = np.asarray(value, np.float64)

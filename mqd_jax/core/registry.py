@@ -41,6 +41,8 @@ ENTRY_POINT_GROUP = "mqd_jax.tasks"
 BUILT_IN = "mqd-jax"  # the distribution whose entry points are the built-in tasks
 _FACTORIES: dict[str, Callable[..., Task]] = {}
 _SOURCES: dict[str, str] = {}  # how each name in _FACTORIES was registered
+# (name, options) of every task `make` built, by the task's id: how a config names its task in a results file.
+_MADE: dict[int, tuple[str, dict[str, Any]]] = {}
 # Called when a name changes implementation: a config names its task by name, so whatever was computed or
 # compiled for a config (jitted programs, the engine's per-config caches) may belong to the old one.
 _ON_REPLACE: list[Callable[[], None]] = [jax.clear_caches]
@@ -50,8 +52,6 @@ def on_replace(clear: Callable[[], None]) -> None:
     """Registers `clear`, called whenever a task name is given another implementation (a per-config cache's
     `cache_clear`)."""
     _ON_REPLACE.append(clear)
-# (name, options) of every task `make` built, by the task's id: how a config names its task in a results file.
-_MADE: dict[int, tuple[str, dict[str, Any]]] = {}
 
 
 def _describe(factory: Callable[..., Task]) -> str:
@@ -66,10 +66,10 @@ def register(name: str, factory: Callable[..., Task], replace: bool = False, _so
     if not callable(factory):
         raise ValueError(f"task {name!r}: the factory {factory!r} is not callable")
     new = _source or f"registry.register ({_describe(factory)})"
-    if not replace and name in registered_tasks():
+    replacing = name in registered_tasks()
+    if replacing and not replace:
         raise ValueError(f"task {name!r} is already registered by {_sources(name)}; registering it again by {new} "
                          "would replace it: pass replace=True to do so on purpose, or choose another name")
-    replacing = name in registered_tasks()
     _FACTORIES[name], _SOURCES[name] = factory, new
     _make.cache_clear()
     if replacing:

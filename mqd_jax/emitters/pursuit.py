@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from mqd_jax.core import pytree
+from mqd_jax.core.averages import running_average
 from mqd_jax.core.checks import is_real
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import AddStatus
@@ -66,10 +67,3 @@ class Fallback:
         target = jnp.where(averaged[0] > averaged[1], 1.0 - self.floor, self.floor)
         share = jnp.where(jnp.isnan(averaged).any(), state.share, state.share + self.rate * (target - state.share))
         return FallbackState(share=share.astype(jnp.float32), success=averaged.astype(jnp.float32))
-
-
-def running_average(average: jax.Array, value: jax.Array, weight: float, seen: jax.Array) -> jax.Array:
-    """An exponential average after one more value: (1 - weight) * average + weight * value where `seen`;
-    the value itself where the average is still NaN (none yet); the average unchanged where not `seen`."""
-    updated = jnp.where(jnp.isnan(average), value, (1 - weight) * average + weight * value)
-    return jnp.where(seen, updated, average)

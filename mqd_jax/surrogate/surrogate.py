@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from mqd_jax.core import archive as archive_lib
 from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
+from mqd_jax.core.averages import running_average
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import Repertoire
@@ -72,13 +73,6 @@ class SurrogateState:
     rollouts: Any = ()
     anchor_errors: Any = ()
     validity: Any = ()
-
-
-def running_average(average: jax.Array, value: jax.Array, weight: float, seen: jax.Array) -> jax.Array:
-    """An exponential average after one more value: (1 - weight) * average + weight * value where `seen`;
-    the value itself where the average is still NaN (none yet); the average unchanged where not `seen`."""
-    updated = jnp.where(jnp.isnan(average), value, (1 - weight) * average + weight * value)
-    return jnp.where(seen, updated, average)
 
 
 def prediction_error(predicted: jax.Array, evaluated: Evaluated) -> jax.Array:
