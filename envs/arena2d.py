@@ -100,6 +100,19 @@ def rollout(actions: Array, init: Any, step: Callable[[Any, Array], Any]) -> Any
     return init
 
 
+def free_path(actions: jax.Array, start: tuple[float, float], lo: float = 0.0, hi: float = 1.0) -> jax.Array:
+    """The positions [B, T + 1, 2] (start first) of a point that follows actions [B, n] through an arena without
+    obstacles, kept inside [lo, hi]^2: what a task can know of the path without its obstacles (`Task.features`)."""
+    start_ = jnp.broadcast_to(jnp.asarray(start, jnp.float32), (actions.shape[0], 2))
+
+    def step(pos: jax.Array, delta: jax.Array) -> tuple[jax.Array, jax.Array]:
+        pos = jnp.clip(pos + delta, lo, hi)
+        return pos, pos
+
+    _, path = jax.lax.scan(step, start_, step_displacements(actions))
+    return jnp.concatenate([start_[:, None], jnp.moveaxis(path, 0, 1)], axis=1)
+
+
 def path_quality(shortest: Array, travelled: Array) -> Array:
     """`delta_min / delta` in [0, 1]; 1 for a rollout that never moved."""
     xp = xp_of(shortest, travelled)

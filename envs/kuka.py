@@ -180,10 +180,11 @@ class Kinematics:
                                jnp.cross(axes, rot[:, 0])], axis=1).T
         return r, jac
 
-    def inverse(self, q0: jax.Array, target: jax.Array, gamma: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def inverse(self, q0: jax.Array, target: jax.Array, gamma: jax.Array,
+                iterations: int = IK_ITERATIONS) -> tuple[jax.Array, jax.Array]:
         """Joint angles [7] for one pose, from q0, and the final residual [9].
 
-        Damped least squares for a fixed number of iterations within the joint
+        Damped least squares for a fixed number of `iterations` within the joint
         limits: deterministic, and an unreachable target ends at a nearby
         reachable pose whose residual says how far it is.
         """
@@ -192,7 +193,7 @@ class Kinematics:
             dq = jnp.linalg.solve(jac.T @ jac + IK_DAMPING ** 2 * jnp.eye(jac.shape[1]), jac.T @ r)
             return jnp.clip(q - dq, self.low, self.high)
 
-        q = jax.lax.fori_loop(0, IK_ITERATIONS, step, q0)
+        q = jax.lax.fori_loop(0, iterations, step, q0)
         return q, self.residual_and_jacobian(q, target, gamma)[0]
 
 

@@ -50,6 +50,9 @@ from mqd_jax.core.task import Region, Task
 BACKENDS = ("auto", "mujoco", "mjx", "warp")
 SETTLE = 250  # steps (1 s) after the motion for the object to come to rest
 REST_SPEED = 0.01  # m/s: an object faster than this at the end has not come to rest
+# `features`' IK iterations: within 0.05 mm of a rollout's 50 for 90% of random push actions (10x cheaper).
+FEATURE_IK_ITERATIONS = 10
+FEATURE_PATH_POINTS = 48  # forward-kinematics points per segment of the commanded joint path
 # The paper's Table I: final coverage (mean, std) per scene and preset.
 PAPER_COVERAGE = {
     "push_cube": {"mqd": (0.828, 0.059), "qd": (0.709, 0.047), "random": (0.216, 0.073)},
@@ -68,6 +71,19 @@ def auto_backend() -> str:
     if jax.default_backend() == "cpu":
         return "mujoco"
     return "warp" if jax.default_backend() == "gpu" and warp_installed() else "mjx"
+
+
+def _surfaces(scene: str) -> list[tuple[str, tuple[float, ...]]]:
+    """The scene's table and shelves (box geoms named table*/shelf*, from its MJCF): (name, (x_low, y_low,
+    x_high, y_high, top))."""
+    model = kuka.load(scene)
+    out = []
+    for g in range(model.ngeom):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
+        if name.startswith(("table", "shelf")) and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+            (x, y, z), (sx, sy, sz) = map(tuple, (model.geom_pos[g], model.geom_size[g]))
+            out.append((name, (x - sx, y - sy, x + sx, y + sy, z + sz)))
+    return out
 
 
 @struct.dataclass
@@ -157,6 +173,34 @@ class Manipulation(Task):
         ctrl = arm if gripper is None else jnp.concatenate([arm, gripper], axis=-1)
         return Plan(reached, durations, fits, ctrl)
 
+    def tool_path(self, actions: jax.Array, points: int = FEATURE_PATH_POINTS,
+                  iterations: int = FEATURE_IK_ITERATIONS) -> jax.Array:
+        """The tool's positions [B, V * points + 1, 3] along the joint path actions [B, n] command, without physics:
+        IK of the via-points (`iterations` each, from the last), `points` forward-kinematics points on each
+        linear joint-space segment (the path a rollout's position servos track), the start first."""
+        targets, gammas, _ = self.via_points(actions)
+        q_start = jnp.asarray(self._q_start, jnp.float32)
+        fractions = jnp.arange(1, points + 1, dtype=jnp.float32)[:, None] / points
+
+        def one(target: jax.Array, gamma: jax.Array) -> jax.Array:
+            def solve(q: jax.Array, pose: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+                q_next = self._kinematics.inverse(q, *pose, iterations=iterations)[0]
+                return q_next, q + fractions * (q_next - q)  # [points, 7]
+
+            _, qs = jax.lax.scan(solve, q_start, (target, gamma))
+            qs = jnp.concatenate([q_start[None], qs.reshape(-1, q_start.shape[0])])
+            return jax.vmap(lambda q: self._kinematics.forward(q)[0])(qs)
+
+        return jax.vmap(one)(targets, gammas)
+
+    def surface_below(self, xy: jax.Array) -> jax.Array:
+        """[...] the height of the highest table or shelf top (`_surfaces`) under points xy [..., 2] (0, the
+        table's level, where there is none)."""
+        boxes = jnp.asarray([box for _, box in _surfaces(self.scene)], jnp.float32)
+        x, y = xy[..., 0, None], xy[..., 1, None]
+        over = (boxes[:, 0] <= x) & (x <= boxes[:, 2]) & (boxes[:, 1] <= y) & (y <= boxes[:, 3])
+        return jnp.where(over, boxes[:, 4], 0.0).max(axis=-1)
+
     def rollout_controls(self, actions: jax.Array) -> jax.Array:
         """actions [B, n] -> what the backends take: joint targets and, for a scene with a gripper, its
         targets, [B, horizon, nu]."""
@@ -179,6 +223,11 @@ class Manipulation(Task):
 
     def evaluate_masked(self, actions: jax.Array, key: jax.Array,
                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        return self.evaluate_sensors(actions, mask)[:3]
+
+    def evaluate_sensors(self, actions: jax.Array,
+                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+        """`evaluate_masked`'s behaviors, qualities and valid, and the rollouts' sensors [B, horizon, ns]."""
         plan = self.plan(actions)
         runs = mask & plan.reached & plan.fits
         _, sensors, finite = self.simulate(plan.ctrl, runs)
@@ -188,21 +237,17 @@ class Manipulation(Task):
         on_table = (obj[:, :2] >= low).all(1) & (obj[:, :2] <= high).all(1) & (obj[:, 2] > 0.0)
         speed = jnp.linalg.norm(obj - sensors[:, -2, 3:6], axis=1) / self._timestep
         untouched = ~kuka.arm_touched(sensors)
-        return behaviors, qualities, runs & finite & untouched & on_table & (speed <= REST_SPEED) & ok
+        return behaviors, qualities, runs & finite & untouched & on_table & (speed <= REST_SPEED) & ok, sensors
 
     def layout(self) -> tuple[Region, ...]:
         """The table and any shelves (boxes of the scene named table*/shelf*, from its MJCF), the
         via-points' box (x, y) and the object's start, seen from above."""
         model = kuka.load(self.scene)
         parts = []
-        for g in range(model.ngeom):
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
-            if name.startswith(("table", "shelf")) and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
-                (x, y), (sx, sy) = model.geom_pos[g][:2], model.geom_size[g][:2]
-                top = model.geom_pos[g][2] + model.geom_size[g][2]
-                label = name.replace("_", " ") + ("" if name == "table" else f" (top {100 * top:.0f} cm)")
-                colour = (0.88, 0.8, 0.66) if name == "table" else (0.62, 0.45, 0.28)
-                parts.append(Region(label, (x - sx, y - sy), (x + sx, y + sy), colour=colour))
+        for name, (x0, y0, x1, y1, top) in _surfaces(self.scene):
+            label = name.replace("_", " ") + ("" if name == "table" else f" (top {100 * top:.0f} cm)")
+            colour = (0.88, 0.8, 0.66) if name == "table" else (0.62, 0.45, 0.28)
+            parts.append(Region(label, (x0, y0), (x1, y1), colour=colour))
         body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
         r = float(model.geom_size[model.body_geomadr[body]][0])
         (cx, cy) = kuka.TABLE_CENTRE

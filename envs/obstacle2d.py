@@ -7,6 +7,10 @@ axis-aligned boxes that shortest path bends only at box corners, so it is exact:
 a visibility graph over the start and the corners, solved once on the host.
 Obstacles that touch the arena's walls are sealed to them (`arena2d.sealed`) for
 both the motion and the shortest path.
+
+Features (`Task.features`, for M-QD's model): the path the action would take
+without obstacles (`arena2d.free_path`): its end, whether and where it first
+crosses an obstacle, and how far it would go on past that point.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import dataclasses
 from typing import ClassVar
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from envs import arena2d
@@ -108,6 +113,20 @@ class Obstacle2D(Task):
         final, travelled = arena2d.rollout(actions, init, step)
         quality = arena2d.path_quality(self.shortest_path(final), travelled)
         return final, quality, xp.ones(batch, bool)
+
+    def features(self, actions: jax.Array) -> jax.Array:
+        """[B, 6]: the free path's end (x, y), +1 if it crosses an obstacle (else -1), the point (x, y) before
+        its first crossing (the end if none) and the length it goes on past it (clipped to [0, 2]); positions
+        mapped from the arena to [-1, 1]."""
+        path = arena2d.free_path(actions, self.start)
+        steps = jnp.diff(path, axis=1)
+        crosses = segment_blocked(path[:, :-1], path[:, 1:], jnp.asarray(self._blocking))  # [B, T]
+        crossed = crosses.any(axis=1)
+        first = jnp.where(crossed, jnp.argmax(crosses, axis=1), steps.shape[1])
+        hit = jnp.take_along_axis(path, first[:, None, None], axis=1)[:, 0]
+        past = jnp.where(jnp.arange(steps.shape[1]) >= first[:, None], jnp.linalg.norm(steps, axis=-1), 0.0).sum(1)
+        return jnp.concatenate([2.0 * path[:, -1] - 1.0, jnp.where(crossed, 1.0, -1.0)[:, None], 2.0 * hit - 1.0,
+                                jnp.clip(past, 0.0, 2.0)[:, None] - 1.0], axis=1)
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
         """Free space: outside every obstacle (all of it is connected to the start)."""

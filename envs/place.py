@@ -18,6 +18,12 @@ A held cube that hits a shelf or the table on the way can slip in the hand or
 be knocked out of it; a rollout whose cube is not in the hand (within
 HELD_TOLERANCE of where the grasp holds it) when it is to be let go is invalid:
 it placed nothing. See `envs.manipulation` for what else makes a rollout invalid.
+
+Features (`Task.features`, for M-QD's model), from forward kinematics of the
+commanded path: where the cube is let go (x, y), its drop to the surface
+beneath (table or shelf), and the path's lowest clearance of the held cube's
+bottom over the surfaces beneath it (a cube that strikes a shelf on the way
+slips or is knocked out of the hand).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import mujoco
 
 from envs import kuka
 from envs.manipulation import SETTLE, Manipulation
@@ -46,6 +53,19 @@ class Place(Manipulation):
     def via_points(self, actions: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         via = actions.reshape(actions.shape[0], VIA_POINTS, 5)
         return via[..., :3], via[..., 3], via[..., 4]
+
+    def features(self, actions: jax.Array) -> jax.Array:
+        """[B, 4]: the release point (x, y) in behavior-box units, the drop there and the path's lowest clearance
+        (`tool_path`; heights in units of Z_HIGH, clearance clipped to [-1, 1])."""
+        model, start = kuka.load(self.scene), self._rollout.sensors_start
+        half = float(model.geom_size[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "object")][2])
+        below = float(start[2] - start[5]) + half  # the held cube's bottom below the tool's tip, as grasped
+        path = self.tool_path(actions)
+        bottom = path[..., 2] - below - self.surface_below(path[..., :2])  # [B, T]
+        low, high = jnp.asarray(self.behavior_low, jnp.float32), jnp.asarray(self.behavior_high, jnp.float32)
+        release = 2.0 * (path[:, -1, :2] - low) / (high - low) - 1.0
+        return jnp.concatenate([release, bottom[:, -1:] / Z_HIGH,
+                                jnp.clip(bottom.min(axis=1, keepdims=True) / Z_HIGH, -1.0, 1.0)], axis=1)
 
     def release_step(self, durations: jax.Array) -> jax.Array:
         """[B] int32: the step at which the cube is let go, RELEASE_DELAY after the last via-point is reached."""

@@ -17,7 +17,9 @@ Signals: the run's model (plain and anchored predictions, as `ModelEmitter.predi
 by the distance to the nearest skill (what `Diverse` ranks by) or by a smoothed novelty (mean
 distance to the 5 nearest skills; minus the number of skills within 0.1); the parent's
 novelty (the repertoire's, by which IsoLine draws parents); networks trained afresh for 2000
-Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts; and a
+Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts, or on the
+repertoire with the task's features as inputs (`Task.features`), with their held-out behavior
+error (MSE over the pools' valid children); and a
 classifier of openers (a network of 64 units fitted for 3000 steps of 64 rows to +1 for an
 opener and -1 for the rest) trained on the seed's other pools, every child of which was rolled
 out, and scored on the held-out pool: what a model of the action alone can learn of "would open
@@ -62,16 +64,19 @@ def _scores(predicted: np.ndarray, skills: np.ndarray) -> dict[str, np.ndarray]:
     return {"nearest": nearest[:, 0], "novelty-5": nearest[:, :5].mean(1), "-count(0.1)": -(d < 0.1).sum(1)}
 
 
-def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: Task, key: jax.Array) -> model.ModelState:
-    """A network of `hidden` units trained afresh for 2000 steps of 16 rows on `data`."""
-    state = model.init(key, hidden, task)
-    return jax.jit(lambda s: model.train(s, jax.random.fold_in(key, 1), data, task, 1e-3, 16, 2000))(state)[0]
+def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: Task, key: jax.Array,
+           features: bool = False) -> model.ModelState:
+    """A network of `hidden` units trained afresh for 2000 steps of 16 rows on `data` (`features`: with the task's
+    features as inputs, computed for 4096 rows drawn from the data)."""
+    state = model.init(key, hidden, task, features=features)
+    return jax.jit(lambda s: model.train(s, jax.random.fold_in(key, 1), data, task, 1e-3, 16, 2000,
+                                         4096 if features else None))(state)[0]
 
 
-def _rated(score: np.ndarray, opener: np.ndarray) -> tuple[float, float]:
-    """(AUC, precision@100) of scores [N] against the openers [N]."""
+def _rated(score: np.ndarray, opener: np.ndarray, error: float = float("nan")) -> tuple[float, float, float]:
+    """(AUC, precision@100, held-out behavior error) of scores [N] against the openers [N]."""
     top = np.argsort(-score, kind="stable")[:CHOSEN]
-    return auc(score, opener), float(opener[top].mean())
+    return auc(score, opener), float(opener[top].mean()), error
 
 
 def _classifier(labelled: list[tuple[jax.Array, np.ndarray]], task: Task, key: jax.Array) -> model.ModelState:
@@ -99,6 +104,8 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
     key = jax.random.PRNGKey(1000 + seed)
     fresh = {f"fresh {h} units, {name}": _fresh(data, h, task, key)
              for h in (32, 256) for name, data in (("repertoire", rep), ("repertoire + archive", both))}
+    fresh |= {f"fresh {h} units, repertoire, with the task's features": _fresh(rep, h, task, key, True)
+              for h in (32, 256)}
     out: dict[str, list] = {}
     distances, openers, labelled = [], [], []
     for p in range(pools):
@@ -118,13 +125,17 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
         scored = {f"run's model, {name}, {s}": v
                   for name, y in (("plain", plain), ("anchored", anchored))
                   for s, v in _scores(np.asarray(y.mean(0)[:, :-1]), skills).items()}
-        scored |= {f"{name}, nearest": _scores(np.asarray(model.predict(m, pool.actions, task)[0]), skills)["nearest"]
-                   for name, m in fresh.items()}
+        predicted = {name: np.asarray(model.predict(m, pool.actions, task, "features" in name)[0])
+                     for name, m in fresh.items()}
+        scored |= {f"{name}, nearest": _scores(y, skills)["nearest"] for name, y in predicted.items()}
+        ok = np.asarray(valid)
+        error = {f"{name}, nearest": float(np.mean((y[ok] - np.asarray(behaviors)[ok]) ** 2))
+                 for name, y in predicted.items()}
         scored["parent's novelty"] = np.asarray(rep.novelty)[parents]
         scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
         labelled.append((model.normalize_actions(pool.actions, task), opener))
         for name, score in scored.items():
-            out.setdefault(name, []).append(_rated(score, opener))
+            out.setdefault(name, []).append(_rated(score, opener, error.get(name, float("nan"))))
     for p, (inputs, opener) in enumerate(labelled if pools > 1 else []):  # one pool has no other to learn from
         score = np.asarray(model.apply_members(_classifier(labelled[:p] + labelled[p + 1:], task, key), inputs))
         out.setdefault("classifier of openers, other pools", []).append(_rated(score[0, :, 0], opener))
@@ -149,10 +160,11 @@ def main() -> None:
                   f"Skills after {args.generations} generations: {stats['skills']:.0f}; openers in a pool (base "
                   f"rate): {stats['base rate']:.3f}; distance from a valid child's behavior to its first parent's "
                   f"(quartiles): {stats['q25']:.3f} / {stats['q50']:.3f} / {stats['q75']:.3f} (t_dist 0.02).", "",
-                  "| signal | AUC | precision@100 |", "|---|---|---|"]
+                  "| signal | AUC | precision@100 | held-out behavior MSE |", "|---|---|---|---|"]
         for name in per_seed[0][0]:
             values = np.array([v for s in per_seed for v in s[0][name]], float)
-            lines.append(f"| {name} | {np.nanmean(values[:, 0]):.3f} | {values[:, 1].mean():.3f} |")
+            mse = "" if np.isnan(values[:, 2]).all() else f"{np.nanmean(values[:, 2]):.5f}"
+            lines.append(f"| {name} | {np.nanmean(values[:, 0]):.3f} | {values[:, 1].mean():.3f} | {mse} |")
         lines.append("")
         print(f"{task_name}: done", flush=True)
     report.write(lines, args.out)

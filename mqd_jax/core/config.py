@@ -245,10 +245,11 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
     0.6 (configs without `anchor`) it anchored at the nearest skill; before version 0.7 (configs without
     `parent_weight`) it ranked predicted openers by their distance alone; before version 0.8 (configs without
     `quality_share`) it made no quality steps; before version 0.9 (configs without `wide_scale`) it varied its
-    pool at one scale."""
+    pool at one scale; before version 0.11 (options without `features`) "mqd"'s model took neither the task's
+    features nor a gate."""
     saved = dict(saved)
-    if "algorithm_options" in saved:  # today's
-        return saved
+    if "algorithm_options" in saved:  # version 0.10 or later
+        return _since_0_10(saved)
     defaults = _flat_defaults()
     if "ensemble_size" not in saved:
         saved.setdefault("pool_factor", 4)
@@ -274,4 +275,13 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
         saved.pop(name, None)
     taken = algorithms.options(saved["algorithm"]) if saved.get("algorithm") in algorithms.names() else {}
     saved["algorithm_options"] = {name: value for name, value in flat.items() if name in taken}
-    return saved
+    return _since_0_10(saved)
+
+
+def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
+    """A config dict of version 0.10 or later in today's options: "mqd" without `features` (before version 0.11)
+    took neither the task's features nor a gate."""
+    options = dict(saved.get("algorithm_options", {}))
+    if saved.get("algorithm") == "mqd" and "features" not in options:
+        options.update(features=False, gate=False)
+    return {**saved, "algorithm_options": options}

@@ -13,7 +13,7 @@ run may `vmap` over) are the emitter's own: `default_params()` gives them from
 its fields, `check_params` refuses bad concrete values, and `propose`/`update`
 read them as `params.emitter.<name>` (`mqd_jax.core.params.Params`; the engine's
 `params.t_dist` beside them). `check_run(population_size, max_generations)`
-refuses, before anything is traced, a run the emitter cannot serve.
+refuses, before anything is traced, a run the emitter cannot serve; `check_task(task)`, a task it cannot.
 
 `propose` gives `num` candidate actions and which of them to roll out;
 `update` sees their results (`Evaluated`) and the repertoire after they were
@@ -73,12 +73,15 @@ class Evaluated:
         where `usable` is False.
       usable: [num] bool, rolled out and returned a valid, finite result.
       status: [num] int32 `repertoire.AddStatus` of each candidate's insertion.
+      auxiliary: [num, m] the task's auxiliary outputs (`Task.auxiliary`; m = 0 for a
+        task without them); zeros where `usable` is False.
     """
 
     behaviors: jax.Array
     qualities: jax.Array
     usable: jax.Array
     status: jax.Array
+    auxiliary: Any = None
 
 
 def action_bounds(task: Task) -> tuple[jax.Array, jax.Array]:
@@ -109,6 +112,10 @@ class Emitter:
     def check_run(self, population_size: int, max_generations: int) -> None:
         """Raises ValueError if the emitter cannot serve a run of this size (default: it can)."""
         del population_size, max_generations
+
+    def check_task(self, task: Task) -> None:
+        """Raises ValueError if the emitter cannot serve this task (default: it can)."""
+        del task
 
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:

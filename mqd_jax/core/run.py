@@ -94,9 +94,12 @@ def _reachable(cfg: Config) -> np.ndarray:
 def init(key: jax.Array, cfg: Config) -> State:
     """The state before the first generation: empty repertoire and archive, the emitter's initial state. Jitted.
 
-    Raises ValueError if the task's `evaluate` breaks the task protocol's shapes.
+    Raises ValueError if the task's `evaluate` breaks the task protocol's shapes, or the emitter cannot serve the
+    task (`Emitter.check_task`: a gate needs an auxiliary output the task does not return).
     """
-    check_outputs(get_task(cfg), cfg.task_name, cfg.population_size)
+    task = get_task(cfg)
+    check_outputs(task, cfg.task_name, cfg.population_size)
+    cfg.emitter.check_task(task)
     return _init(key, cfg)
 
 
@@ -219,9 +222,10 @@ def _propose(state: State, cfg: Config, params: Params) -> Candidates:
 
 
 @stage("evaluate")
-def _evaluate(candidates: Candidates, task: Task) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Stage evaluate: the task's rollouts of the candidates to roll out."""
-    return task.evaluate_masked(candidates.actions, candidates.key, candidates.rollout)
+def _evaluate(candidates: Candidates, task: Task) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Stage evaluate: the task's rollouts of the candidates to roll out: behaviors, qualities, valid and the
+    auxiliary outputs ([P, 0] for a task without them)."""
+    return task.evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
 
 
 def _usable(candidates: Candidates, behaviors: jax.Array, qualities: jax.Array,
@@ -303,18 +307,29 @@ def _metrics(state: State, candidates: Candidates, evaluated: Evaluated, task: T
     }
 
 
-def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array, pop: int, d: int) -> None:
-    shapes = {"behaviors": (behaviors.shape, (pop, d)), "qualities": (qualities.shape, (pop,)),
-              "valid": (valid.shape, (pop,))}
+def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array, auxiliary: jax.Array | None,
+                   pop: int, task: Task, task_name: str) -> jax.Array:
+    """Raises ValueError unless the results fit the population and the task; returns the auxiliary outputs
+    ([P, 0] for a task without them)."""
+    names = task.auxiliary
+    if auxiliary is None:
+        if names:
+            raise ValueError(f"tell: task {task_name!r} returns auxiliary outputs {names}: pass auxiliary= "
+                             f"[{pop}, {len(names)}], the fourth output of its evaluate")
+        auxiliary = jnp.zeros((pop, 0), jnp.float32)
+    shapes = {"behaviors": (behaviors.shape, (pop, task.behavior_dim)), "qualities": (qualities.shape, (pop,)),
+              "valid": (valid.shape, (pop,)), "auxiliary": (jnp.shape(auxiliary), (pop, len(names)))}
     for name, (got, want) in shapes.items():
         if tuple(got) != want:
             raise ValueError(f"tell: {name} has shape {tuple(got)}; expected {want} (one row per candidate)")
     if not jnp.issubdtype(valid.dtype, jnp.bool_):
         raise ValueError(f"tell: valid has dtype {valid.dtype}; expected bool")
+    return jnp.asarray(auxiliary)
 
 
 def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
-         cfg: Config, params: Params | None = None) -> tuple[State, dict[str, jax.Array]]:
+         cfg: Config, params: Params | None = None,
+         auxiliary: jax.Array | None = None) -> tuple[State, dict[str, jax.Array]]:
     """The stages after the rollouts: insert, archive, coverage, emitter update, metrics. Jitted.
 
     Args:
@@ -324,6 +339,8 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
       behaviors: [P, d], qualities: [P], valid: [P] bool: the rollouts' results
         (arrays or nested lists); rows that `candidates.rollout` leaves out are
         ignored (any value).
+      auxiliary: [P, m] the task's auxiliary outputs (`Task.auxiliary`), required
+        for a task that names some; None for one that does not.
 
     Returns:
       The next state (key advanced) and the generation's metrics (see `run_mqd`).
@@ -334,17 +351,19 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
         raise ValueError(f"tell: these candidates were asked at generation {int(asked)}, the state is at generation "
                          f"{int(now)}: tell each ask's candidates once, with the state ask was given, then ask again")
     behaviors, qualities, valid = (jnp.asarray(x) for x in (behaviors, qualities, valid))
-    _check_results(behaviors, qualities, valid, cfg.population_size, get_task(cfg).behavior_dim)
-    return _tell(state, candidates, behaviors, qualities, valid, cfg, params)
+    auxiliary = _check_results(behaviors, qualities, valid, auxiliary, cfg.population_size, get_task(cfg),
+                               cfg.task_name)
+    return _tell(state, candidates, behaviors, qualities, valid, auxiliary, cfg, params)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
-          cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
+          auxiliary: jax.Array, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
     key, _, _, k_update = jax.random.split(state.key, 4)
     behaviors, qualities, usable = _usable(candidates, behaviors, qualities, valid)
     rep, ins = _insert(state.repertoire, candidates.actions, behaviors, qualities, usable, cfg, params)
-    evaluated = Evaluated(behaviors, qualities, usable, ins.status)
+    auxiliary = jnp.where(usable[:, None], auxiliary, 0.0).astype(jnp.float32)
+    evaluated = Evaluated(behaviors, qualities, usable, ins.status, auxiliary)
     emitter_state, emitter_metrics = _update_emitter(k_update, state, candidates, evaluated, rep, cfg, params)
     new = State(repertoire=rep, archive=_archive(state.archive, state.repertoire, candidates.actions, evaluated, ins),
                 coverage=_cover(state.coverage, state.repertoire, evaluated, ins, params.t_dist),
@@ -356,8 +375,8 @@ def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities:
 def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
     """One generation: exactly `ask`, the task's rollouts, `tell`."""
     candidates = ask(state, cfg, params)
-    behaviors, qualities, valid = _evaluate(candidates, get_task(cfg))
-    return tell(state, candidates, behaviors, qualities, valid, cfg, params)
+    behaviors, qualities, valid, auxiliary = _evaluate(candidates, get_task(cfg))
+    return tell(state, candidates, behaviors, qualities, valid, cfg, params, auxiliary)
 
 
 def run_generations(state: State, cfg: Config, params: Params, num: int,

@@ -13,6 +13,18 @@ M-QD's model maps it to its tanh output range. A backend that can skip
 rollouts (a host callback) overrides `evaluate_masked`. `layout` lists the
 scene's parts (`Region`s) that figures draw under the behaviors.
 
+`features(actions)` is how a task tells M-QD's model what is cheap to know: a
+jittable function of the actions alone, without physics (forward kinematics of
+a robot's path, where a point robot's straight path first meets a wall), whose
+values the model takes as inputs beside the actions. The default has none.
+
+`auxiliary` names what else a rollout observes on the way (whether and when
+a pusher touched the object, where the object was part-way): a task that names
+some implements `evaluate_with_auxiliary`, which returns them beside
+`evaluate_masked`'s outputs, auxiliary [B, m] (one column per name, about
+[-1, 1]); M-QD's model may learn them (`mqd_jax.surrogate.gate`). The default
+names none.
+
 A task also says which of the paper's settings apply to it (class attributes;
 the framework knows no task by name): `table_ii_column` ("2d" or "robot", the
 defaults `Config.paper` takes), `paper_seeds` (runs per algorithm in a sweep)
@@ -59,6 +71,8 @@ class Task:
       behavior_low, behavior_high: the behavior box, length d.
       quality_range: (low, high) of the qualities `evaluate` returns; a class
         attribute, fixed per task. M-QD's model normalizes qualities with it.
+      auxiliary: names of the auxiliary outputs [B, m] `evaluate_with_auxiliary` returns
+        (a class attribute; default none).
       table_ii_column: "2d" or "robot": the paper's Table II column of
         defaults that `Config.paper` gives this task.
       paper_seeds: runs per algorithm in the paper's experiments (`mqd sweep`'s default).
@@ -67,6 +81,7 @@ class Task:
     """
 
     quality_range: ClassVar[tuple[float, float]] = (0.0, 1.0)
+    auxiliary: ClassVar[tuple[str, ...]] = ()
     table_ii_column: ClassVar[str] = "2d"
     paper_seeds: ClassVar[int] = 25
     paper_coverage: ClassVar[Mapping[str, tuple[float, float]]] = {}
@@ -88,6 +103,17 @@ class Task:
         """Rolls out `actions[B, n]`; returns behaviors[B, d], qualities[B], valid[B]."""
         raise NotImplementedError
 
+    def features(self, actions: jax.Array) -> jax.Array:
+        """What the task can compute from actions [B, n] without a rollout: features [B, f], float, about [-1, 1].
+
+        Inputs for M-QD's model beside the normalized actions (`Surrogate(features=True)`): a
+        pure, jittable and (almost everywhere) differentiable function, e.g. forward kinematics
+        of the path an action commands, where it would first touch an object, how far it would
+        go on. Scale each feature to about [-1, 1] (the model's inputs are in those units).
+        The default: no features, [B, 0].
+        """
+        return jnp.zeros((actions.shape[0], 0), jnp.float32)
+
     def evaluate_masked(self, actions: jax.Array, key: jax.Array,
                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """`evaluate` for the rows where mask[B] is set; the other rows' outputs are ignored.
@@ -97,6 +123,12 @@ class Task:
         """
         del mask
         return self.evaluate(actions, key)
+
+    def evaluate_with_auxiliary(self, actions: jax.Array, key: jax.Array,
+                                mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+        """`evaluate_masked`'s outputs and the rollouts' auxiliary outputs [B, m], one column per name of
+        `auxiliary`, about [-1, 1] (what the engine calls). The default: none, [B, 0]."""
+        return (*self.evaluate_masked(actions, key, mask), jnp.zeros((actions.shape[0], 0), jnp.float32))
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
         """Whether each behavior `points[..., d]` is reachable (numpy, host side).
@@ -118,24 +150,48 @@ class Task:
         raise NotImplementedError(f"{type(self).__name__} does not render its skills (Task.frames)")
 
 
+def feature_dim(task: Task) -> int:
+    """f, the number of `task.features` (read abstractly: nothing runs)."""
+    return jax.eval_shape(task.features, jax.ShapeDtypeStruct((1, task.action_dim), jnp.float32)).shape[-1]
+
+
+def _overrides_auxiliary(task: Task) -> bool:
+    return type(task).evaluate_with_auxiliary is not Task.evaluate_with_auxiliary
+
+
 def check_outputs(task: Task, name: str, batch: int) -> None:
-    """Raises ValueError unless `task.evaluate` has the protocol's output shapes and dtypes.
+    """Raises ValueError unless `task.evaluate` and `task.features` have the protocol's output shapes and dtypes.
 
     Checked abstractly (`jax.eval_shape`: nothing runs) on actions[batch, n].
     """
-    n, d = task.action_dim, task.behavior_dim
-    want = f"(behaviors [{batch}, {d}] float, qualities [{batch}] float, valid [{batch}] bool)"
+    n, d, m = task.action_dim, task.behavior_dim, len(task.auxiliary)
+    want = f"(behaviors [{batch}, {d}] float, qualities [{batch}] float, valid [{batch}] bool"
     actions = jax.ShapeDtypeStruct((batch, n), jnp.float32)
+    for call, expected, shapes, kinds in (
+            (f"evaluate(actions [{batch}, {n}], key)", want + ")", [(batch, d), (batch,), (batch,)],
+             [jnp.floating, jnp.floating, jnp.bool_]),
+            (f"evaluate_with_auxiliary(actions [{batch}, {n}], key, mask)",
+             want + f", auxiliary [{batch}, {m}] float {task.auxiliary})", [(batch, d), (batch,), (batch,), (batch, m)],
+             [jnp.floating, jnp.floating, jnp.bool_, jnp.floating]))[:2 if _overrides_auxiliary(task) else 1]:
+        try:
+            out = jax.eval_shape(lambda a, c=call: (task.evaluate(a, jax.random.PRNGKey(0)) if c.startswith("evaluate(")
+                                                    else task.evaluate_with_auxiliary(a, jax.random.PRNGKey(0),
+                                                                                      jnp.ones(batch, bool))), actions)
+        except Exception as e:  # any failure of user code is reported the same way
+            raise ValueError(f"task {name!r}: {call} failed: {e}") from e
+        if not (isinstance(out, tuple) and len(out) == len(shapes) and all(
+                o.shape == s and jnp.issubdtype(o.dtype, k) for o, s, k in zip(out, shapes, kinds, strict=True))):
+            got = jax.tree.map(lambda o: f"{o.dtype}{list(o.shape)}", out)
+            raise ValueError(f"task {name!r}: {call} must return {expected}; got {got}")
     try:
-        out = jax.eval_shape(lambda a: task.evaluate(a, jax.random.PRNGKey(0)), actions)
+        features = jax.eval_shape(task.features, actions)
     except Exception as e:  # any failure of user code is reported the same way
-        raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) failed: {e}") from e
-    shapes = [(batch, d), (batch,), (batch,)]
-    kinds = [jnp.floating, jnp.floating, jnp.bool_]
-    if not (isinstance(out, tuple) and len(out) == 3 and all(
-            o.shape == s and jnp.issubdtype(o.dtype, k) for o, s, k in zip(out, shapes, kinds, strict=True))):
-        got = jax.tree.map(lambda o: f"{o.dtype}{list(o.shape)}", out)
-        raise ValueError(f"task {name!r}: evaluate(actions [{batch}, {n}], key) must return {want}; got {got}")
+        raise ValueError(f"task {name!r}: features(actions [{batch}, {n}]) failed: {e}") from e
+    if not (isinstance(features, jax.ShapeDtypeStruct) and features.ndim == 2 and features.shape[0] == batch
+            and jnp.issubdtype(features.dtype, jnp.floating)):
+        got = jax.tree.map(lambda o: f"{o.dtype}{list(o.shape)}", features)
+        raise ValueError(f"task {name!r}: features(actions [{batch}, {n}]) must return features [{batch}, f] float; "
+                         f"got {got}")
 
 
 # Behavior spaces the library supports today (coverage grid, figures, the model's outputs).
@@ -178,6 +234,12 @@ def check_task(task: Task, name: str) -> None:
     if task.behavior_dim not in BEHAVIOR_DIMS:
         raise ValueError(f"task {name!r}: a behavior space of {task.behavior_dim} dimensions is not supported yet "
                          f"(supported: {', '.join(map(str, BEHAVIOR_DIMS))})")
+    aux = task.auxiliary
+    if not (isinstance(aux, tuple) and all(isinstance(a, str) and a for a in aux) and len(set(aux)) == len(aux)):
+        raise ValueError(f"task {name!r}: auxiliary={aux!r} is invalid: expected a tuple of distinct names")
+    if aux and not _overrides_auxiliary(task):
+        raise ValueError(f"task {name!r} names auxiliary outputs {aux} but does not return them: implement "
+                         "evaluate_with_auxiliary")
     q = task.quality_range
     ok = (isinstance(q, tuple) and len(q) == 2 and all(isinstance(v, (int, float)) and np.isfinite(v) for v in q)
           and q[0] < q[1])

@@ -162,6 +162,10 @@ class ModelEmitter(Emitter):
         if self.steering is not None:
             self._steered_count(self.acquisition.pool_size(population_size), population_size)
 
+    def check_task(self, task: Task) -> None:
+        self.inner.check_task(task)
+        self.surrogate.check_task(task)
+
     def _steered_count(self, pool_size: int, num: int) -> int:
         """The rows steering replaces in a pool of `pool_size` for `num` rollouts; ValueError unless at least 1,
         leaving `num` to the inner emitter."""

@@ -41,9 +41,10 @@ from mqd_jax.core.run import State, check_state, get_task, init, run_generations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
-FORMAT = 6
-# The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`).
-_SURROGATE = ("model", "rollouts", "anchor_errors", "validity")
+FORMAT = 7
+# The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`), and the gate
+# format 7 added there (a fresh run's, where an older format's state is completed from one).
+_SURROGATE = ("model", "rollouts", "anchor_errors", "validity", "gate")
 Metrics = dict[str, np.ndarray]
 
 
@@ -133,6 +134,15 @@ def _from_format_5(state: dict[str, Any]) -> dict[str, Any]:
                                  "surrogate": surrogate}}
 
 
+def _from_format_6(state: dict[str, Any]) -> dict[str, Any]:
+    """Formats 1-6 had no gate (`mqd_jax.surrogate.gate`); since format 7 the surrogate's state holds one, empty
+    for a surrogate without it."""
+    emitter = state["emitter"]
+    if not (isinstance(emitter, dict) and "surrogate" in emitter) or "gate" in emitter["surrogate"]:
+        return state
+    return {**state, "emitter": {**emitter, "surrogate": {**emitter["surrogate"], "gate": {}}}}
+
+
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
     _register_pytrees()
@@ -202,7 +212,9 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
             payload["state"] = _from_format_3(payload["state"], fresh, cfg)
         if payload["format"] < 5:
             payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
-        payload["state"] = _from_format_5(payload["state"])
+        if payload["format"] < 6:
+            payload["state"] = _from_format_5(payload["state"])
+        payload["state"] = _from_format_6(payload["state"])
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

@@ -17,6 +17,10 @@ is over): `num_batches` Adam steps on the mean-squared error in normalized
 units, each member on its own `batch_size` rows drawn uniformly (with
 replacement) from the training data (the repertoire, or a buffer of rollouts).
 
+With `features=True` the network's inputs are the normalized actions followed
+by the task's features of them (`Task.features`: what the task can compute
+without physics); a task without features gives the same inputs either way.
+
 Flax's `linen` and optax are imported when a model is first built (`init`), so
 `import mqd_jax` does not pay for them in a run without a model.
 """
@@ -32,7 +36,7 @@ import jax.numpy as jnp
 from mqd_jax.core import pytree
 from mqd_jax.core.archive import Archive
 from mqd_jax.core.repertoire import Repertoire
-from mqd_jax.core.task import Task
+from mqd_jax.core.task import Task, feature_dim
 
 
 @functools.cache
@@ -119,13 +123,25 @@ def normalize_targets(behaviors: jax.Array, qualities: jax.Array, task: Task) ->
     return _to_unit(jnp.concatenate([behaviors, qualities[..., None]], axis=-1), *_bounds(task))
 
 
+def inputs(actions: jax.Array, task: Task, features: bool = False) -> jax.Array:
+    """The network's inputs: actions [..., n] normalized, then with `features` the task's features [..., f]."""
+    x = normalize_actions(actions, task)
+    if not features:
+        return x
+    flat = actions.reshape(-1, actions.shape[-1])
+    return jnp.concatenate([x, task.features(flat).reshape(*actions.shape[:-1], -1)], axis=-1)
+
+
 def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1,
-         out_size: int | None = None) -> ModelState:
+         out_size: int | None = None, features: bool = False, input_size: int | None = None) -> ModelState:
     """Random parameters of `ensemble_size` members (Flax's default initialisers, one key each) and a fresh Adam
     state. A single member is initialised from `key` itself. `out_size`: the outputs, d + 1 (phi) unless given
-    (a network of the same kind that predicts something else, as `mqd_jax.surrogate.validity`'s classifier)."""
+    (a network of the same kind that predicts something else, as `mqd_jax.surrogate.validity`'s classifier).
+    The inputs: n, n + f with `features` (the task's features), or `input_size` where given."""
     net = network(hidden_size, task) if out_size is None else mlp(hidden_size, out_size)
-    x = jnp.zeros((1, task.action_dim), jnp.float32)
+    if input_size is None:
+        input_size = task.action_dim + (feature_dim(task) if features else 0)
+    x = jnp.zeros((1, input_size), jnp.float32)
     keys = key[None] if ensemble_size == 1 else jax.random.split(key, ensemble_size)
     params = jax.vmap(lambda k: net.init(k, x))(keys)
     return ModelState(params=params, opt_state=_optimizer().init(params), steps=jnp.int32(0))
@@ -136,9 +152,11 @@ def ensemble_size(model: ModelState) -> int:
     return model.params["params"]["Dense_0"]["bias"].shape[0]
 
 
-def predict_members(model: ModelState, actions: jax.Array, task: Task) -> jax.Array:
-    """Each member's phi in real units: actions [..., n] -> [E, ..., d + 1] (behavior, then quality)."""
-    y = apply_members(model, normalize_actions(actions, task))
+def predict_members(model: ModelState, actions: jax.Array, task: Task, features: bool = False,
+                    given: jax.Array | None = None) -> jax.Array:
+    """Each member's phi in real units: actions [..., n] -> [E, ..., d + 1] (behavior, then quality). `given`:
+    the network's inputs of the actions where already computed (`inputs`)."""
+    y = apply_members(model, inputs(actions, task, features) if given is None else given)
     low, high = _bounds(task)
     return low + (y + 1.0) * (high - low) / 2.0
 
@@ -149,25 +167,34 @@ def apply_members(model: ModelState, inputs: jax.Array) -> jax.Array:
     return jax.vmap(lambda p: net.apply(p, inputs))(model.params)
 
 
-def predict(model: ModelState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
+def predict(model: ModelState, actions: jax.Array, task: Task,
+            features: bool = False) -> tuple[jax.Array, jax.Array]:
     """phi in real units, the members' mean: actions [..., n] -> behaviors [..., d], qualities [...]."""
-    y = predict_members(model, actions, task).mean(axis=0)
+    y = predict_members(model, actions, task, features).mean(axis=0)
     return y[..., :-1], y[..., -1]
 
 
 def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: Task, learning_rate: jax.Array,
-          batch_size: int, num_batches: int) -> tuple[ModelState, jax.Array]:
+          batch_size: int, num_batches: int, feature_rows: int | None = None) -> tuple[ModelState, jax.Array]:
     """`num_batches` Adam steps at `learning_rate`, each member on its own mini-batches of `batch_size` rows.
 
     `data` is a repertoire (its valid rows are the prefix [0, count)) or a
     rollout buffer (`Archive`: the filled prefix [0, min(total, A))); it must
-    hold at least one row. Returns the new state and the mean loss over the
-    steps and members.
+    hold at least one row. With `feature_rows` the inputs include the task's
+    features, computed once for `feature_rows` rows drawn uniformly (with
+    replacement) from the data, on which the steps then draw their mini-batches
+    (features can cost a forward-kinematics pass per row). Returns the new
+    state and the mean loss over the steps and members.
     """
     filled = data.count if isinstance(data, Repertoire) else jnp.minimum(data.total, data.qualities.shape[0])
-    return fit(model, key, normalize_actions(data.actions, task),
-               normalize_targets(data.behaviors, data.qualities, task), filled, learning_rate, batch_size,
-               num_batches)
+    actions, targets = data.actions, normalize_targets(data.behaviors, data.qualities, task)
+    if feature_rows is None:
+        return fit(model, key, normalize_actions(actions, task), targets, filled, learning_rate, batch_size,
+                   num_batches)
+    key, drawn = jax.random.split(key)
+    rows = jax.random.randint(drawn, (feature_rows,), 0, filled)
+    return fit(model, key, inputs(actions[rows], task, True), targets[rows], jnp.int32(feature_rows), learning_rate,
+               batch_size, num_batches)
 
 
 def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,

@@ -6,7 +6,12 @@ latest usable rollouts), how its predictions are anchored, and an optional
 classifier of usable rollouts (`Validity`). It predicts (`members`,
 `predictions`, `chosen`, `predict`) and learns from a generation's rollouts
 (`update`); its one traced parameter is Adam's learning rate
-(`SurrogateParams`). What to do with the predictions (the inner emitter, the
+(`SurrogateParams`). With `features` the model also takes the task's features
+of an action (`Task.features`: what the task can compute without physics).
+With a `Gate` (`mqd_jax.surrogate.gate`) it also learns the task's auxiliary
+outputs from every rollout and predicts the null outcome (the object stays
+where it is) for a candidate the gate says does not act.
+What to do with the predictions (the inner emitter, the
 acquisition rule, fallback and steering) is the `ModelEmitter`'s.
 
 `anchoring`: "always" anchors a candidate's prediction at a repertoire skill
@@ -38,8 +43,9 @@ from mqd_jax.core.averages import running_average
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import Repertoire
-from mqd_jax.core.task import Task
+from mqd_jax.core.task import Task, feature_dim
 from mqd_jax.surrogate import model
+from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.validity import Validity
 
 TRAINING_DATA = ("repertoire", "rollouts")
@@ -67,12 +73,14 @@ class SurrogateState:
       anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
         plain and the anchored predictions (NaN before the first); else ().
       validity: `validity.ValidityState`, or () without a validity classifier.
+      gate: `gate.GateState`, or () without a gate.
     """
 
     model: model.ModelState
     rollouts: Any = ()
     anchor_errors: Any = ()
     validity: Any = ()
+    gate: Any = ()
 
 
 def prediction_error(predicted: jax.Array, evaluated: Evaluated) -> jax.Array:
@@ -97,6 +105,11 @@ class Surrogate:
         `rollout_buffer` usable rollouts, in a ring buffer).
       rollout_buffer: the size of that buffer.
       validity: a `Validity` classifier of usable rollouts that acquisition rules consult, or None.
+      features: the model's inputs include the task's features (`Task.features`); the same as False on a
+        task without features.
+      feature_rows: with `features`, the training rows per generation whose features are computed (drawn
+        from the training data; the mini-batches are drawn from them).
+      gate: a `Gate` that moves candidates it says do not act to the null outcome, or None.
     """
 
     hidden_size: int = 32
@@ -109,10 +122,13 @@ class Surrogate:
     training_data: str = "repertoire"
     rollout_buffer: int = 4096
     validity: Validity | None = None
+    features: bool = False
+    feature_rows: int = 1024
+    gate: Gate | None = None
 
     def __post_init__(self) -> None:
         for name, lowest in (("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1), ("num_batches", 1),
-                             ("rollout_buffer", 1)):
+                             ("rollout_buffer", 1), ("feature_rows", 1)):
             value = getattr(self, name)
             if not (is_int(value) and value >= lowest):
                 raise ValueError(f"Surrogate.{name}={value!r} is invalid: expected an int >= {lowest}")
@@ -125,8 +141,32 @@ class Surrogate:
         if self.training_data not in TRAINING_DATA:
             raise ValueError(f"Surrogate.training_data={self.training_data!r} is invalid: expected one of "
                              f"{TRAINING_DATA}")
+        if not isinstance(self.features, bool):
+            raise ValueError(f"Surrogate.features={self.features!r} is invalid: expected True or False")
         if self.validity is not None and not isinstance(self.validity, Validity):
             raise ValueError(f"Surrogate.validity={self.validity!r} is invalid: expected None or a Validity")
+        if self.gate is not None and not isinstance(self.gate, Gate):
+            raise ValueError(f"Surrogate.gate={self.gate!r} is invalid: expected None or a Gate")
+
+    def check_task(self, task: Task) -> None:
+        """Raises ValueError unless the task gives what the surrogate needs (a gate's auxiliary output)."""
+        if self.gate is not None:
+            self.gate.check_task(task)
+
+    def _featured(self, task: Task) -> bool:
+        """Whether the model takes features of `task` (`features` is set and the task has some)."""
+        return self.features and feature_dim(task) > 0
+
+    def _gated(self, task: Task) -> bool:
+        """Whether a gate acts on `task` (`Gate.serves`)."""
+        return self.gate is not None and self.gate.serves(task)
+
+    def _input_size(self, task: Task) -> int:
+        return task.action_dim + (feature_dim(task) if self._featured(task) else 0)
+
+    def inputs(self, actions: jax.Array, task: Task) -> jax.Array:
+        """The networks' inputs [N, n (+ f)] of actions [N, n] (`model.inputs`)."""
+        return model.inputs(actions, task, self._featured(task))
 
     def default_params(self) -> SurrogateParams:
         return SurrogateParams(jnp.float32(self.learning_rate))
@@ -137,29 +177,36 @@ class Surrogate:
     def init(self, key: jax.Array, task: Task) -> SurrogateState:
         rollouts = (archive_lib.Archive.empty(self.rollout_buffer, task.action_dim, task.behavior_dim)
                     if self.training_data == "rollouts" else ())
-        return SurrogateState(model=model.init(key, self.hidden_size, task, self.ensemble_size), rollouts=rollouts,
+        return SurrogateState(model=model.init(key, self.hidden_size, task, self.ensemble_size,
+                                                                features=self.features), rollouts=rollouts,
                               anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else (),
                               validity=() if self.validity is None else self.validity.init(
-                                  jax.random.fold_in(key, 3), task))
+                                  jax.random.fold_in(key, 3), task),
+                              gate=() if not self._gated(task) else self.gate.init(
+                                  jax.random.fold_in(key, 4), task, self._input_size(task)))
 
-    def members(self, state: SurrogateState, actions: jax.Array, task: Task) -> jax.Array:
-        """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n]. A subclass may
-        predict otherwise (an experiment's oracle returns the true outcomes)."""
-        return model.predict_members(state.model, actions, task)
+    def members(self, state: SurrogateState, actions: jax.Array, task: Task,
+                inputs: jax.Array | None = None) -> jax.Array:
+        """Each member's prediction [E, N, d + 1] (behavior, quality; real units) of actions [N, n] (`inputs`: their
+        network inputs where already computed). A subclass may predict otherwise (an experiment's oracle returns
+        the true outcomes)."""
+        return model.predict_members(state.model, actions, task, self.features, inputs)
 
     def predict(self, state: SurrogateState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
         """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what steering and skill
         adaptation differentiate; the ensemble's mean, not anchored)."""
-        return model.predict(state.model, actions, task)
+        return model.predict(state.model, actions, task, self.features)
 
     def predictions(self, state: SurrogateState, actions: jax.Array, repertoire: Repertoire, task: Task,
                     parents: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
         """The members' plain predictions [E, N, d + 1] of actions [N, n] and, unless `anchoring` is "none", the
         anchored ones: at the parents' slots [N] (-1: not anchored) with anchor="parent" and parents given, else
         at the nearest skills."""
-        plain = self.members(state, actions, task)
+        x = self.inputs(actions, task)
+        plain = self.members(state, actions, task, x)
+        gate = (lambda y: self.gate.gated(state.gate, x, y, task)) if self._gated(task) else (lambda y: y)  # noqa: E731
         if self.anchoring == "none":
-            return plain, None
+            return gate(plain), None
         if self.anchor == "parent" and parents is not None:
             anchor, anchored_rows = jnp.maximum(parents, 0), (parents >= 0)[:, None]
         else:
@@ -169,7 +216,7 @@ class Surrogate:
             anchored_rows = repertoire.count > 0
         known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
         anchored = known + plain - self.members(state, repertoire.actions[anchor], task)
-        return plain, jnp.where(anchored_rows, anchored, plain)
+        return gate(plain), gate(jnp.where(anchored_rows, anchored, plain))
 
     def chosen(self, state: SurrogateState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
         """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
@@ -195,14 +242,21 @@ class Surrogate:
         with jax.named_scope("train"):
             trained, loss = jax.lax.cond(
                 due & has_data, lambda: model.train(state.model, key, data, task, params.learning_rate,
-                                                    self.batch_size, self.num_batches),
+                                                    self.batch_size, self.num_batches,
+                                                    self.feature_rows if self._featured(task) else None),
                 lambda: (state.model, jnp.float32(jnp.nan)))
         validity = state.validity
         if self.validity is not None:
             validity = self.validity.update(jax.random.fold_in(key, 3), state.validity, actions, rollout,
                                             evaluated.usable, task, params.learning_rate)
+        gate = state.gate
+        if self._gated(task):
+            outcomes = jnp.concatenate([evaluated.behaviors, evaluated.qualities[:, None]], axis=1)
+            gate = self.gate.update(jax.random.fold_in(key, 4), state.gate, self.inputs(actions, task),
+                                    evaluated.auxiliary, outcomes, evaluated.usable, task, params.learning_rate)
         anchor_errors = state.anchor_errors
         if self.anchoring == "auto":
             errors = jax.vmap(prediction_error, in_axes=(0, None))(both_behaviors, evaluated)
             anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
-        return SurrogateState(model=trained, rollouts=rollouts, anchor_errors=anchor_errors, validity=validity), loss
+        return SurrogateState(model=trained, rollouts=rollouts, anchor_errors=anchor_errors, validity=validity,
+                              gate=gate), loss
