@@ -204,7 +204,7 @@ class Surrogate:
         at the nearest skills."""
         x = self.inputs(actions, task)
         plain = self.members(state, actions, task, x)
-        gate = (lambda y: self.gate.gated(state.gate, x, y, task)) if self._gated(task) else (lambda y: y)  # noqa: E731
+        gate = (lambda y: self.gate.gated(state.gate, x, y, task)) if self._gated(task) else (lambda y: y)
         if self.anchoring == "none":
             return gate(plain), None
         if self.anchor == "parent" and parents is not None:
