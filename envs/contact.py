@@ -11,8 +11,9 @@ forward kinematics), so a task can hand the model what it implies:
     touch point  (x, y) where the path first comes within `reach` (the path's end if never), in box units [-1, 1]
     direction    the path's unit direction of motion there (0, 0 if it never touches)
     past         how far the path goes on after that point, in units of the box's half-diagonal, from [0, 2] to [-1, 1]
+    end          (x, y) where the path ends, in box units [-1, 1]
 
-Seven numbers, no dynamics: the object's own motion (sliding, rolling, tipping)
+Nine numbers, no dynamics: the object's own motion (sliding, rolling, tipping)
 is left to the model.
 """
 
@@ -24,7 +25,7 @@ import jax.numpy as jnp
 
 def path_contact(path: jax.Array, near: jax.Array, centre: tuple[float, float], reach: float,
                  low: tuple[float, ...], high: tuple[float, ...]) -> jax.Array:
-    """Features [B, 7] (see the module's doc) of paths [B, T, 2] against a disk at `centre` of radius `reach`.
+    """Features [B, 9] (see the module's doc) of paths [B, T, 2] against a disk at `centre` of radius `reach`.
 
     `near` [B, T] bool: where a path point can touch at all (an arm's tool low enough); the others
     count as far. `low`, `high`: the box that positions are scaled by (the behavior box).
@@ -48,5 +49,5 @@ def path_contact(path: jax.Array, near: jax.Array, centre: tuple[float, float], 
     past = jnp.where(touched, jnp.where(after, lengths, 0.0).sum(axis=1), 0.0)
     closest = jnp.clip(jnp.where(jnp.isfinite(dist), dist, 4.0 * reach).min(axis=1) / reach, 0.0, 4.0)
     return jnp.concatenate([jnp.where(touched, 1.0, -1.0)[:, None], (closest / 2.0 - 1.0)[:, None], to_box(point),
-                            direction, jnp.clip(past / half_diagonal, 0.0, 2.0)[:, None] - 1.0],
+                            direction, jnp.clip(past / half_diagonal, 0.0, 2.0)[:, None] - 1.0, to_box(path[:, -1])],
                            axis=1).astype(jnp.float32)

@@ -74,7 +74,7 @@ class Object2D(Task):
         return final, arena2d.path_quality(shortest, travelled), xp.ones(batch, bool)
 
     def features(self, actions: jax.Array) -> jax.Array:
-        """[B, 7]: `envs.contact.path_contact` of the agent's free path (`arena2d.free_path`) against the object."""
+        """[B, 9]: `envs.contact.path_contact` of the agent's free path (`arena2d.free_path`) against the object."""
         ra = self.agent_radius
         path = arena2d.free_path(actions, self.agent_start, ra, 1.0 - ra)
         return contact.path_contact(path, jnp.ones(path.shape[:2], bool), self.object_start, ra + self.object_radius,

@@ -54,7 +54,7 @@ class Push(Manipulation):
         return targets, via[..., 2], via[..., 3]
 
     def features(self, actions: jax.Array) -> jax.Array:
-        """[B, 7]: `envs.contact.path_contact` of the tool's path (`tool_path`) against the object's start, within
+        """[B, 9]: `envs.contact.path_contact` of the tool's path (`tool_path`) against the object's start, within
         the object's half-width plus the tool's radius."""
         model = kuka.load(self.scene)
         size = lambda name: float(model.geom_size[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)][0])  # noqa: E731
