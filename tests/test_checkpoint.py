@@ -190,14 +190,16 @@ def test_every_must_be_a_positive_int(tmp_path):
         checkpoint.run_with_checkpoints(KEY, CFG, str(tmp_path / "x"), every=0)
 
 
-V09 = pathlib.Path(__file__).resolve().parent / "data" / "v0.9.0"  # folders mqd-jax 0.9.0 wrote (format 5)
+DATA = pathlib.Path(__file__).resolve().parent / "data"  # folders mqd-jax 0.9.0 (format 5) and 0.10.0 (6) wrote
 
 
-def test_folders_of_version_0_9_resume_tabulate_and_adapt(tmp_path, capsys):
-    """Their configs' settings become options, their checkpoints (one run, and a sweep's batch) load with the
-    model moved into the surrogate's state, their files' checksums hold."""
-    shutil.copytree(V09, tmp_path / "v09")
-    run, sweep = tmp_path / "v09" / "run", tmp_path / "v09" / "sweep"
+@pytest.mark.parametrize("version", ["v0.9.0", "v0.10.0"])
+def test_folders_of_earlier_versions_resume_tabulate_and_adapt(tmp_path, capsys, version):
+    """0.9.0's configs' settings become options, its checkpoints (one run, and a sweep's batch) load with the
+    model moved into the surrogate's state; 0.10.0's "mqd" had neither features nor a gate, its checkpoints
+    no gate; their files' checksums hold."""
+    shutil.copytree(DATA / version, tmp_path / "old")
+    run, sweep = tmp_path / "old" / "run", tmp_path / "old" / "sweep"
     saved = folders.read_json(str(run / "metrics.json"), "")
     flags = ["--generations", "3", "--population", "8", "--capacity", "32", "--archive-capacity", "16",
              "--coverage-resolution", "16", "-O", "warmup_samples=8", "num_batches=2", "hidden_size=4"]
