@@ -1,6 +1,7 @@
 """Side-by-side speed of mqd-jax (QD, M-QD), pyribs and QDax on 2D Obstacle, in one process.
 
     python experiments/bench_qd.py [--generations 250] [--qdax-generations 10] [--out results/bench_qd.md]
+    python experiments/bench_qd.py --only-ratios [--ratio-tasks obstacle2d push_cube] [--out ...]
 
 All run the paper's 2D settings (population 100, K 5, t_dist 0.02) on the same
 task: mqd-jax through its jitted `run_mqd`; pyribs (`pip install -e .[bench]`)
@@ -11,6 +12,12 @@ evaluating with the numpy path of the very same dynamics; QDax 0.5 through an
 in one jitted `lax.scan`. QDax runs fewer generations (it is slow), reported
 per generation. Also sweeps our repertoire capacity. Writes a markdown table
 (ratios are against pyribs, measured in this run).
+
+Then M-QD's cost against QD's where it matters, on each of `--ratio-tasks` (default 2D Obstacle, whose
+rollouts are nearly free, and PushCube on C MuJoCo, where a rollout costs far more than the model): one
+generation of the default "mqd" and of QD at Table II's settings, from repertoires grown for the task's
+Table II generations, timed in turns (`generation_ratio.ms_per_generation`). `--only-ratios` measures
+only that (the peers need the `bench` extra).
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
+from generation_ratio import ms_per_generation
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core import registry
@@ -117,8 +125,25 @@ def main() -> None:
     parser.add_argument("--generations", type=int, default=250)
     parser.add_argument("--qdax-generations", type=int, default=10, help="0 leaves QDax out")
     parser.add_argument("--capacities", type=int, nargs="*", default=[1024, 4096, 16384])
+    parser.add_argument("--ratio-tasks", nargs="*", default=["obstacle2d", "push_cube"])
+    parser.add_argument("--only-ratios", action="store_true", help="only M-QD against QD (no peers)")
     parser.add_argument("--out", default="results/bench_qd.md")
     args = parser.parse_args()
+    lines = [f"Machine: {report.machine()}.", ""] if args.only_ratios else peers(args)
+    if args.ratio_tasks:
+        lines += ["M-QD (\"mqd\", its defaults) against QD, one generation at Table II's settings from repertoires "
+                  "grown for the task's Table II generations (C MuJoCo on the robot tasks), fastest of 5 rounds' "
+                  "medians of 20 calls:", "", "| task | QD ms / generation | M-QD ms / generation | x QD |",
+                  "|---|---|---|---|"]
+        for task in args.ratio_tasks:
+            ms = ms_per_generation(task, ["mqd"])
+            lines.append(f"| {task} | {ms['qd']:.2f} | {ms['mqd']:.2f} | {ms['mqd'] / ms['qd']:.2f} |")
+            print(lines[-1], flush=True)
+    report.write(lines, args.out)
+
+
+def peers(args: argparse.Namespace) -> list[str]:
+    """The side-by-side table of pyribs, QDax and mqd-jax on 2D Obstacle (markdown lines)."""
     cfg = Config.paper_2d(task=TASK, algorithm="qd", max_generations=args.generations)
 
     rows = [("pyribs ProximityArchive + iso-line", bench_pyribs(cfg))]
@@ -147,8 +172,8 @@ def main() -> None:
                      f"| {r['evals_per_s']:.0f} | {r['size']} | {r['coverage']:.3f} | {r['dropped']} |")
     lines += ["", f"pyribs spent {archive_only:.2f} ms / generation in its archive and emitter (ask/tell) and the "
               f"rest in the numpy rollouts; our whole generation is {rows[1][1]['ms_per_gen'] / archive_only:.2f}x "
-              "pyribs' ask/tell alone."]
-    report.write(lines, args.out)
+              "pyribs' ask/tell alone.", ""]
+    return lines
 
 
 if __name__ == "__main__":

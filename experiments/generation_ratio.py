@@ -25,6 +25,25 @@ from mqd_jax import Config, init
 from mqd_jax.core.run import generation, run_generations
 
 
+def ms_per_generation(task: str, specs: list[str], generations: int | None = None, rounds: int = 5,
+                      calls: int = 20) -> dict[str, float]:
+    """{spec: ms} of one jitted generation of each config on `task` (QD's first, as "qd"), each grown for
+    `generations` generations (default: the task's Table II number) and timed in turns (see the module's doc)."""
+    grow = jax.jit(run_generations, static_argnums=(1, 3))
+    timed = {}
+    generations = Config.paper(task).max_generations if generations is None else generations
+    for spec in dict.fromkeys(["qd", *specs]):
+        cfg = configured(spec, task)
+        params = cfg.params()
+        state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, generations)
+        step = jax.jit(lambda s, cfg=cfg, params=params: generation(s, cfg, params))
+        timed[spec] = (step, state, [])
+    for _ in range(rounds):
+        for step, state, times in timed.values():
+            times.append(report.median_ms(lambda step=step, state=state: step(state), calls))
+    return {spec: min(times) for spec, (_, _, times) in timed.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="obstacle2d")
@@ -33,24 +52,13 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--calls", type=int, default=20)
     args = parser.parse_args()
-    grow = jax.jit(run_generations, static_argnums=(1, 3))
-    timed = {}
     generations = Config.paper(args.task).max_generations if args.grow is None else args.grow
-    for spec in ["qd", *args.configs]:
-        cfg = configured(spec, args.task)
-        params = cfg.params()
-        state, _ = grow(init(jax.random.PRNGKey(0), cfg), cfg, params, generations)
-        step = jax.jit(lambda s, cfg=cfg, params=params: generation(s, cfg, params))
-        timed[spec] = (step, state, [])
-    for _ in range(args.rounds):
-        for step, state, rounds in timed.values():
-            rounds.append(report.median_ms(lambda step=step, state=state: step(state), args.calls))
-    qd = min(timed["qd"][2])
+    ms = ms_per_generation(args.task, args.configs, generations, args.rounds, args.calls)
     print(f"{args.task}, Table II's settings, after {generations} generations; {report.machine()}; fastest of "
           f"{args.rounds} rounds' medians of {args.calls} calls.\n")
     print("| config | ms per generation | x QD |\n|---|---|---|")
-    for spec, (_, _, rounds) in timed.items():
-        print(f"| {spec} | {min(rounds):.2f} | {min(rounds) / qd:.2f} |")
+    for spec, value in ms.items():
+        print(f"| {spec} | {value:.2f} | {value / ms['qd']:.2f} |")
 
 
 if __name__ == "__main__":
