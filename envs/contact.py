@@ -14,7 +14,11 @@ forward kinematics), so a task can hand the model what it implies:
     end          (x, y) where the path ends, in box units [-1, 1]
 
 Nine numbers, no dynamics: the object's own motion (sliding, rolling, tipping)
-is left to the model.
+is left to the model. `swept` adds a tenth and eleventh: where the object would
+end if the pusher swept it along without friction or inertia (a disk kept just
+out of the pusher's reach), a geometric guess the model corrects. (On 2D
+Object, whose dynamics are that sweep, it would be the outcome itself, so that
+task does not give it.)
 """
 
 from __future__ import annotations
@@ -51,3 +55,22 @@ def path_contact(path: jax.Array, near: jax.Array, centre: tuple[float, float], 
     return jnp.concatenate([jnp.where(touched, 1.0, -1.0)[:, None], (closest / 2.0 - 1.0)[:, None], to_box(point),
                             direction, jnp.clip(past / half_diagonal, 0.0, 2.0)[:, None] - 1.0, to_box(path[:, -1])],
                            axis=1).astype(jnp.float32)
+
+
+def swept(path: jax.Array, near: jax.Array, centre: tuple[float, float], reach: float, low: tuple[float, ...],
+          high: tuple[float, ...]) -> jax.Array:
+    """[B, 2] where a disk at `centre` ends, in box units [-1, 1], if each point of paths [B, T, 2] that can touch
+    (`near` [B, T]) pushes it straight out of its reach: the disk's centre is moved along the line from the point
+    to `reach` from it. Geometry only (no friction, no inertia, no rotation)."""
+    low_, high_ = jnp.asarray(low, jnp.float32)[:2], jnp.asarray(high, jnp.float32)[:2]
+
+    def step(disk: jax.Array, point: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, None]:
+        at, can = point
+        away = disk - at
+        dist = jnp.linalg.norm(away, axis=-1, keepdims=True)
+        pushed = at + reach * away / jnp.maximum(dist, 1e-9)
+        return jnp.where(can[:, None] & (dist < reach), pushed, disk), None
+
+    start = jnp.broadcast_to(jnp.asarray(centre, jnp.float32), (path.shape[0], 2))
+    end, _ = jax.lax.scan(step, start, (jnp.moveaxis(path, 1, 0), near.T))
+    return 2.0 * (end - low_) / (high_ - low_) - 1.0

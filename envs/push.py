@@ -12,8 +12,9 @@ closed, then holds while the object comes to rest. Behavior: the object's final
 travelled. See `envs.manipulation` for what makes a rollout invalid.
 
 Features (`Task.features`, for M-QD's model): where the tool's commanded path
-meets the object (`envs.contact`), from forward kinematics; a path point can
-touch when the tool's tip is below the object's top.
+meets the object and where it would sweep it (`envs.contact`), and the path's
+length, from forward kinematics; a path point can touch when the tool's tip is
+below the object's top.
 
 Auxiliary outputs (`Task.auxiliary`, what a rollout observes on the way):
 "moved", +1 if the object ever got farther than MOVED from its start (the tool
@@ -54,13 +55,17 @@ class Push(Manipulation):
         return targets, via[..., 2], via[..., 3]
 
     def features(self, actions: jax.Array) -> jax.Array:
-        """[B, 9]: `envs.contact.path_contact` of the tool's path (`tool_path`) against the object's start, within
-        the object's half-width plus the tool's radius."""
+        """[B, 12]: `envs.contact.path_contact` and `swept` of the tool's path (`tool_path`) against the object's
+        start, within the object's half-width plus the tool's radius, and the path's length (the quality's
+        distance, as commanded) mapped from [0, 3] m to [-1, 1]."""
         model = kuka.load(self.scene)
         size = lambda name: float(model.geom_size[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)][0])  # noqa: E731
         path = self.tool_path(actions)
-        return contact.path_contact(path[..., :2], path[..., 2] < 2.0 * self.height, kuka.TABLE_CENTRE,
-                                    size("object") + size("tool"), self.behavior_low, self.behavior_high)
+        args = (path[..., :2], path[..., 2] < 2.0 * self.height, kuka.TABLE_CENTRE, size("object") + size("tool"),
+                self.behavior_low, self.behavior_high)
+        length = jnp.linalg.norm(jnp.diff(path, axis=1), axis=-1).sum(axis=1)  # minus the quality, as commanded
+        return jnp.concatenate([contact.path_contact(*args), contact.swept(*args),
+                                (2.0 * length / -self.quality_range[0] - 1.0)[:, None]], axis=1)
 
     def evaluate_with_auxiliary(self, actions: jax.Array, key: jax.Array,
                                 mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
