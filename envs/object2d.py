@@ -9,7 +9,8 @@ delta` with `delta` the object's path length and `delta_min` the straight line
 from its start (1 if it never moved).
 
 Features (`Task.features`, for M-QD's model): where the agent's path, as if the
-object were not there, meets the object (`envs.contact`).
+object were not there, meets the object (`envs.contact`). Auxiliary output
+(`Task.auxiliary`): "moved", +1 where the agent moved the object, else -1.
 """
 
 from __future__ import annotations
@@ -52,8 +53,15 @@ class Object2D(Task):
     agent_radius: float = AGENT_RADIUS
     object_radius: float = OBJECT_RADIUS
 
+    auxiliary = ("moved",)
+
     def evaluate(self, actions: arena2d.Array, key: jax.Array | None = None):
         """Rolls out actions[B, 15]; numpy in, numpy out (JAX in, JAX out). `key` is unused."""
+        return self.evaluate_with_auxiliary(actions, key)[:3]
+
+    def evaluate_with_auxiliary(self, actions: arena2d.Array, key: jax.Array | None = None,
+                                mask: jax.Array | None = None):
+        """`evaluate`'s outputs and "moved" [B, 1]: +1 where the agent moved the object, else -1."""
         xp = arena2d.xp_of(actions)
         ra, ro = self.agent_radius, self.object_radius
         gap = ra + ro
@@ -71,7 +79,8 @@ class Object2D(Task):
         init = (start(self.agent_start), start(self.object_start), xp.zeros(batch, np.float32))
         _, final, travelled = arena2d.rollout(actions, init, step)
         shortest = xp.linalg.norm(final - xp.asarray(self.object_start, np.float32), axis=1)
-        return final, arena2d.path_quality(shortest, travelled), xp.ones(batch, bool)
+        moved = xp.where(travelled > 0, 1.0, -1.0).astype(np.float32)[:, None]
+        return final, arena2d.path_quality(shortest, travelled), xp.ones(batch, bool), moved
 
     def features(self, actions: jax.Array) -> jax.Array:
         """[B, 9]: `envs.contact.path_contact` of the agent's free path (`arena2d.free_path`) against the object."""

@@ -67,7 +67,8 @@ class Oracle(Surrogate):
     For deterministic tasks with cheap rollouts only: it rolls out its whole pool inside the
     generation to judge it, so it is a reference, not a method."""
 
-    def members(self, state: SurrogateState, actions: jax.Array, task: Task) -> jax.Array:
+    def members(self, state: SurrogateState, actions: jax.Array, task: Task,
+                inputs: jax.Array | None = None) -> jax.Array:
         behaviors, qualities, valid = task.evaluate(actions, jax.random.PRNGKey(0))
         outcome = jnp.concatenate([behaviors, qualities[:, None]], axis=-1).astype(jnp.float32)
         return jnp.where(valid[:, None], outcome, jnp.nan)[None]

@@ -33,7 +33,8 @@ def config(task: str, algorithm: str) -> Config:
     """A tiny run: 3 generations of 8 candidates; M-QD's model filters from the second generation. (0.9.0 saved
     them from `Config(..., warmup_samples=8, num_batches=2, t_nov=0.0, t_qua=0.0)`: the same runs.)"""
     made = registry.make(task, backend="mujoco") if task == "push_cube" else task
-    options = {"mqd": dict(warmup_samples=8, num_batches=2),
+    # 0.11 made "mqd"'s model take the task's features and a gate; 0.9.0's "mqd" had neither.
+    options = {"mqd": dict(warmup_samples=8, num_batches=2, features=False, gate=False),
                "mqd-paper": dict(warmup_samples=8, num_batches=2, t_nov=0.0, t_qua=0.0)}.get(algorithm, {})
     return Config(task=made, algorithm=algorithm, max_generations=3, population_size=8, capacity=64,
                   archive_capacity=32, algorithm_options=options)

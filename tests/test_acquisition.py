@@ -19,6 +19,7 @@ from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, g
 from mqd_jax.emitters.model_emitter import ModelEmitterState, _share, opener_auc
 from mqd_jax.emitters.pursuit import Fallback, FallbackState
 from mqd_jax.surrogate import model
+from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState
 
 
@@ -176,7 +177,7 @@ def test_ensemble_members_train_as_independent_networks(linear_task):
 class _Known(Surrogate):
     """Members with known predictions: member e says (a0 + e, a1 - e, a2) for action a."""
 
-    def members(self, state, actions, task):
+    def members(self, state, actions, task, inputs=None):
         shift = jnp.arange(2.0)[:, None, None] * jnp.array([1.0, -1.0, 0.0])
         return actions[None] + shift
 
@@ -411,7 +412,8 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
                steering_share=0.3)
     assert cfg.emitter == ModelEmitter(
         IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1),
-        Surrogate(hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, anchoring="auto", anchor="parent"),
+        Surrogate(hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, anchoring="auto", anchor="parent",
+                  features=True, gate=Gate()),
         k=cfg.k, warmup_samples=48, fallback=Fallback(), steering=Steering(share=0.3))
 
     def changed(**options):
@@ -423,6 +425,7 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     assert changed(steering_share=0.0).steering is None  # version 0.4's "mqd"
     assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
     assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
+    assert not changed(features=False).surrogate.features and changed(gate=False).surrogate.gate is None  # 0.10's
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
     np.testing.assert_array_equal(m["evaluations"], pop)
@@ -466,8 +469,9 @@ def flat(cfg):
     """`cfg` as a config dict of version 0.9, when every preset's settings were fields of the config."""
     saved = cfg.to_dict()
     options = saved.pop("algorithm_options")
-    return {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
-            "adaptation_step_size": 0.1, "adaptation_steps": 10}
+    later = ("features", "gate")  # options of 0.11
+    return {k: v for k, v in {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
+                              "adaptation_step_size": 0.1, "adaptation_steps": 10}.items() if k not in later}
 
 
 def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor_at_the_nearest_skill():
@@ -478,7 +482,8 @@ def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor
     for algorithm in ("mqd", "qd", "mqd-paper"):
         for version, missing in enumerate(added):
             saved = {k: v for k, v in flat(Config(algorithm=algorithm)).items() if k not in added[version:]}
-            old = {k: then[k] for k in added[version:]} if algorithm == "mqd" else {}
+            old = {**{k: then[k] for k in added[version:]}, "features": False, "gate": False} \
+                if algorithm == "mqd" else {}
             assert Config.from_dict(saved) == Config(algorithm=algorithm, algorithm_options=old), (algorithm, missing)
     assert Config(algorithm="mqd").emitter.steering == Steering(0.25)
     # The preset's rule reads its quality share.

@@ -202,7 +202,8 @@ def test_folders_of_earlier_versions_resume_tabulate_and_adapt(tmp_path, capsys,
     run, sweep = tmp_path / "old" / "run", tmp_path / "old" / "sweep"
     saved = folders.read_json(str(run / "metrics.json"), "")
     flags = ["--generations", "3", "--population", "8", "--capacity", "32", "--archive-capacity", "16",
-             "--coverage-resolution", "16", "-O", "warmup_samples=8", "num_batches=2", "hidden_size=4"]
+             "--coverage-resolution", "16", "-O", "warmup_samples=8", "num_batches=2", "hidden_size=4",
+             "features=False", "gate=False"]  # what their "mqd" was (0.11's takes both)
     cli.main(["run", "--algorithm", "mqd", *flags, "--out", str(run), "--resume"])
     assert "resuming at generation 3 of 3" in capsys.readouterr().out  # the whole run, nothing to compute
     assert folders.read_json(str(run / "metrics.json"), "")["metrics"] == saved["metrics"]

@@ -105,12 +105,14 @@ def test_a_task_made_with_options_round_trips_through_json():
 
 
 def test_configs_of_version_0_9_read_with_their_settings_as_algorithm_options():
-    """A real file of 0.9.0 (tests/data/v0.9.0): its preset's settings were fields of the config."""
+    """A real file of 0.9.0 (tests/data/v0.9.0): its preset's settings were fields of the config, and its "mqd"
+    took neither the task's features nor a gate (0.11's defaults)."""
     old = folders.read_json(str(DATA / "run" / "metrics.json"), "")["config"]
     assert old["warmup_samples"] == 8 and "algorithm_options" not in old
     cfg = Config.from_dict(old)
     assert cfg == Config(algorithm="mqd", max_generations=3, population_size=8, capacity=32, archive_capacity=16,
-                         coverage_resolution=16, algorithm_options=dict(warmup_samples=8, num_batches=2, hidden_size=4))
+                         coverage_resolution=16, algorithm_options=dict(warmup_samples=8, num_batches=2, hidden_size=4,
+                                                                        features=False, gate=False))
     assert Config.from_dict({**old, "physics_backend": "auto"}) == cfg  # and before 0.2
     with pytest.raises(ValueError, match="unknown fields"):
         Config.from_dict({**old, "filter": "strict"})

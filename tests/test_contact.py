@@ -56,8 +56,10 @@ def test_the_2d_tasks_features_anticipate_their_rollouts():
     a = jax.random.uniform(jax.random.PRNGKey(1), (512, obj.action_dim), minval=jnp.asarray(obj.action_low),
                            maxval=jnp.asarray(obj.action_high))
     touched = np.asarray(obj.features(a))[:, 0] > 0
-    moved = np.linalg.norm(np.asarray(obj.evaluate(a, None)[0]) - np.asarray(obj.object_start), axis=1) > 1e-6
+    b, _, _, aux = obj.evaluate_with_auxiliary(a, None)
+    moved = np.linalg.norm(np.asarray(b) - np.asarray(obj.object_start), axis=1) > 1e-6
     assert touched.sum() > 10 and np.array_equal(touched, moved)
+    np.testing.assert_array_equal(np.asarray(aux)[:, 0], np.where(moved, 1.0, -1.0))  # its auxiliary output
 
 
 def test_the_pushes_features_and_auxiliary_outputs_agree_with_their_rollouts():

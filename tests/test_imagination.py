@@ -20,7 +20,7 @@ K = 3
 class _Perfect(Surrogate):
     """A model that knows the task's true outcomes."""
 
-    def members(self, state, actions, task):
+    def members(self, state, actions, task, inputs=None):
         b, q, _ = task.evaluate(actions, None)
         return jnp.concatenate([b, q[:, None]], axis=-1)[None]
 

@@ -50,7 +50,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         quality_share: float = 0.1, wide_scale: float = 2.0, steering_share: float = 0.25, anchor: str = "parent",
         ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500,
         warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
-        line_sigma: float = 0.1, features: bool = False, gate: bool = False) -> Emitter:
+        line_sigma: float = 0.1, features: bool = True, gate: bool = True) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -65,9 +65,10 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
       ensemble_size: the model's members (1: one network).
       hidden_size, batch_size, num_batches, warmup_samples, learning_rate: the model and its training (Table II).
       iso_sigma, line_sigma: the iso+line steps of the inner `IsoLine`.
-      features: the model also takes the task's features of an action (`Task.features`; none: no change).
+      features: the model also takes the task's features of an action (`Task.features`; a task without
+        them: no change).
       gate: a `Gate` on the task's auxiliary output "moved" moves candidates predicted not to act to the null
-        outcome (`Task.auxiliary`; none: no change).
+        outcome (`Task.auxiliary`; a task without them: no change).
     """
     rule = Diverse(pool_factor, optimism, parent_weight=parent_weight, quality_share=quality_share)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
