@@ -8,9 +8,11 @@ back in contact. Behavior: the object's final position. Quality: `delta_min /
 delta` with `delta` the object's path length and `delta_min` the straight line
 from its start (1 if it never moved).
 
-Features (`Task.features`, for M-QD's model): where the agent's path, as if the
-object were not there, meets the object (`envs.contact`). Auxiliary output
-(`Task.auxiliary`): "moved", +1 where the agent moved the object, else -1.
+Auxiliary output (`Task.auxiliary`, for M-QD's gate): "moved", +1 where the
+agent moved the object, else -1. No features (`Task.features`): where the
+agent's path meets the object (`envs.contact.path_contact`) cost M-QD coverage
+here in measurement (docs/results.md, "Version 0.11"), and where it would sweep
+the object is this task's own dynamics, the outcome itself.
 """
 
 from __future__ import annotations
@@ -19,10 +21,9 @@ import dataclasses
 from typing import ClassVar
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from envs import arena2d, contact
+from envs import arena2d
 from mqd_jax.core.task import Region, Task
 
 # The agent starts in a corner, 0.57 from the object at the centre: a random path of 5 sub-actions seldom
@@ -81,13 +82,6 @@ class Object2D(Task):
         shortest = xp.linalg.norm(final - xp.asarray(self.object_start, np.float32), axis=1)
         moved = xp.where(travelled > 0, 1.0, -1.0).astype(np.float32)[:, None]
         return final, arena2d.path_quality(shortest, travelled), xp.ones(batch, bool), moved
-
-    def features(self, actions: jax.Array) -> jax.Array:
-        """[B, 9]: `envs.contact.path_contact` of the agent's free path (`arena2d.free_path`) against the object."""
-        ra = self.agent_radius
-        path = arena2d.free_path(actions, self.agent_start, ra, 1.0 - ra)
-        return contact.path_contact(path, jnp.ones(path.shape[:2], bool), self.object_start, ra + self.object_radius,
-                                    self.behavior_low, self.behavior_high)
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
         """Object centres stay object_radius away from the walls."""

@@ -52,10 +52,14 @@ def test_the_2d_tasks_features_anticipate_their_rollouts():
     # One that crosses one stops at or before the point before its first crossing... or slides on from there.
     np.testing.assert_allclose(np.asarray(arena2d.free_path(a[:3], obstacle.start))[:, -1], (f[:3, :2] + 1) / 2,
                                atol=1e-6)
-    # 2D Object: the object moves exactly when the agent's path (as if the object were not there) touches it.
+    # 2D Object: the object moves exactly when the agent's path (as if the object were not there) comes within
+    # reach of it.
     a = jax.random.uniform(jax.random.PRNGKey(1), (512, obj.action_dim), minval=jnp.asarray(obj.action_low),
                            maxval=jnp.asarray(obj.action_high))
-    touched = np.asarray(obj.features(a))[:, 0] > 0
+    ra = obj.agent_radius
+    path = arena2d.free_path(a, obj.agent_start, ra, 1.0 - ra)
+    touched = np.asarray(contact.path_contact(path, jnp.ones(path.shape[:2], bool), obj.object_start,
+                                              ra + obj.object_radius, obj.behavior_low, obj.behavior_high))[:, 0] > 0
     b, _, _, aux = obj.evaluate_with_auxiliary(a, None)
     moved = np.linalg.norm(np.asarray(b) - np.asarray(obj.object_start), axis=1) > 1e-6
     assert touched.sum() > 10 and np.array_equal(touched, moved)
@@ -147,13 +151,13 @@ def test_a_run_with_a_gate_and_features_learns_the_flick_and_a_task_without_them
 
 
 def test_the_model_takes_the_features_as_inputs_after_the_actions():
-    task = registry.make("object2d")
+    task = registry.make("obstacle2d")
     a = jax.random.uniform(jax.random.PRNGKey(0), (5, task.action_dim))
     x = np.asarray(model.inputs(a, task, True))
     np.testing.assert_array_equal(x[:, :task.action_dim], np.asarray(model.normalize_actions(a, task)))
     np.testing.assert_array_equal(x[:, task.action_dim:], np.asarray(task.features(a)))
     state = Surrogate(hidden_size=4, features=True).init(jax.random.PRNGKey(0), task)
-    assert state.model.params["params"]["Dense_0"]["kernel"].shape == (1, task.action_dim + 9, 4)
+    assert state.model.params["params"]["Dense_0"]["kernel"].shape == (1, task.action_dim + 6, 4)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
