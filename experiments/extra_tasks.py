@@ -4,6 +4,8 @@
   the centre of the unit square); behavior = the tip's position, quality = minus the angles' standard deviation.
 * `rugged_arm`: the arm with every angle 25 x its action: a behavior that changes quickly along every action axis.
 * `rastrigin`: QD's Rastrigin projection (20 dimensions).
+* `arm_elbow`, `rugged_arm_elbow`: the two arms with features for M-QD's model (`Task.features`): where the
+  middle joint (the elbow) is, the forward kinematics of half the arm: cheap to know, and only part of the answer.
 """
 
 from __future__ import annotations
@@ -53,6 +55,29 @@ def make_rugged_arm(joints: int = 10) -> RuggedArm:
     return RuggedArm((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0))
 
 
+def elbow(angles: jax.Array) -> jax.Array:
+    """[B, 2] the position of the arm's middle joint for angles [B, n], from [0, 1] to [-1, 1]."""
+    n = angles.shape[1]
+    heading = jnp.cumsum(angles[:, : n // 2], axis=1)
+    return 1.0 / n * jnp.stack([jnp.cos(heading).sum(1), jnp.sin(heading).sum(1)], axis=1)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ElbowArm(PlanarArm):
+    """The planar arm that tells the model where its elbow is."""
+
+    def features(self, actions: jax.Array) -> jax.Array:
+        return elbow(actions)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ElbowRuggedArm(RuggedArm):
+    """The rugged arm that tells the model where its elbow is."""
+
+    def features(self, actions: jax.Array) -> jax.Array:
+        return elbow(jnp.angle(jnp.exp(25j * actions)))
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class RastriginProjection(Task):
     """QD's Rastrigin projection (a classic benchmark, after QDax's rastrigin_proj): x in [-5.12, 5.12]^n,
@@ -73,7 +98,11 @@ def make_rastrigin(dims: int = 20) -> RastriginProjection:
 
 
 # Tasks defined here, registered by the experiments that name them.
-EXPERIMENT_TASKS = {"arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin}
+EXPERIMENT_TASKS = {
+    "arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin,
+    "arm_elbow": lambda: ElbowArm(*dataclasses.astuple(make_arm())),
+    "rugged_arm_elbow": lambda: ElbowRuggedArm(*dataclasses.astuple(make_rugged_arm())),
+}
 
 
 def register_experiment_tasks(tasks: list[str]) -> None:
