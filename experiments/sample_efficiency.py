@@ -150,7 +150,7 @@ def quality_on_shared_niches(skills: list[Repertoire], qd_skills: list[Repertoir
 
 
 # The model's diagnostics (README, "Metrics"), averaged over seeds and the generations past warm-up.
-DIAGNOSTICS = ("opener_auc", "model_share", "steered", "steering_share", "validity_auc")
+DIAGNOSTICS = ("opener_auc", "model_share", "steered", "steering_share", "validity_auc", "prediction_error")
 
 
 def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, Any]:
@@ -218,8 +218,8 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
     final = np.asarray(curve["final_coverage"])
     timing = [f"{curve['ms_per_generation']:.1f}", f"{curve['ms_per_generation'] / qd['ms_per_generation']:.2f}"] \
         if timed else ["", ""]
-    diagnostics = [f"{curve[n]:.2f}" if np.isfinite(curve.get(n, np.nan)) else ""
-                   for n in ("invalid_share", *DIAGNOSTICS)]
+    diagnostics = [(f"{curve[n]:.5f}" if n == "prediction_error" else f"{curve[n]:.2f}")
+                   if np.isfinite(curve.get(n, np.nan)) else "" for n in ("invalid_share", *DIAGNOSTICS)]
     # Final repertoires compare at QD's budget only where both runs spent it.
     shared = ""
     if SKILLS in curve and SKILLS in qd and abs(curve["rollouts"][-1] - budget) < 0.5:
@@ -413,14 +413,16 @@ def main() -> None:
              + ("" if args.sweep or args.merge else " ms/gen: the batch's time per generation after compiling; ratio "
                 "to QD's (blank where QD's curve was not run here).")
              + " Invalid: the share of all rollouts that were invalid (blank in files written before it)."
-             " Opener AUC, model share, steered, steering share, validity AUC: the model's diagnostics `opener_auc`, "
-             "`model_share`, `steered` (rollouts per generation), `steering_share` and `validity_auc` (README, "
-             "\"Metrics\"; AUC 0.5 = chance), averaged over seeds and the generations past warm-up.",
+             " Opener AUC, model share, steered, steering share, validity AUC, held-out error: the model's "
+             "diagnostics `opener_auc`, `model_share`, `steered` (rollouts per generation), `steering_share`, "
+             "`validity_auc` and `prediction_error` (the behavior MSE of its predictions of each generation's "
+             "rollouts, before it trains on them) (README, \"Metrics\"; AUC 0.5 = chance), averaged over seeds and "
+             "the generations past warm-up.",
              ""]
     header = ["composition", "rollouts to QD", "90% interval", "cov @25%", "cov @50%", "cov @100%", "quality",
               "quality on QD's niches", "final coverage",
               "rollouts", "ms/gen", "x QD", "invalid", "opener AUC", "model share", "steered", "steering share",
-              "validity AUC"]
+              "validity AUC", "held-out error"]
     for task, by in curves.items():
         lines += [f"### {task}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         # Times are ratios within one invocation: none where QD's curve came from another.
