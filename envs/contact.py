@@ -27,6 +27,13 @@ import jax
 import jax.numpy as jnp
 
 
+def box_units(points: jax.Array, low: tuple[float, ...], high: tuple[float, ...]) -> jax.Array:
+    """points [..., 2] mapped from the box `low`..`high` (its first two axes) to [-1, 1]: the units of every
+    position among the tasks' features and auxiliary outputs."""
+    low_, high_ = jnp.asarray(low, jnp.float32)[:2], jnp.asarray(high, jnp.float32)[:2]
+    return 2.0 * (points - low_) / (high_ - low_) - 1.0
+
+
 def path_contact(path: jax.Array, near: jax.Array, centre: tuple[float, float], reach: float,
                  low: tuple[float, ...], high: tuple[float, ...]) -> jax.Array:
     """Features [B, 9] (see the module's doc) of paths [B, T, 2] against a disk at `centre` of radius `reach`.
@@ -34,9 +41,8 @@ def path_contact(path: jax.Array, near: jax.Array, centre: tuple[float, float], 
     `near` [B, T] bool: where a path point can touch at all (an arm's tool low enough); the others
     count as far. `low`, `high`: the box that positions are scaled by (the behavior box).
     """
-    low_, high_ = jnp.asarray(low, jnp.float32)[:2], jnp.asarray(high, jnp.float32)[:2]
-    to_box = lambda p: 2.0 * (p - low_) / (high_ - low_) - 1.0  # noqa: E731
-    half_diagonal = 0.5 * jnp.linalg.norm(high_ - low_)
+    to_box = lambda p: box_units(p, low, high)  # noqa: E731
+    half_diagonal = 0.5 * jnp.linalg.norm(jnp.asarray(high, jnp.float32)[:2] - jnp.asarray(low, jnp.float32)[:2])
     dist = jnp.where(near, jnp.linalg.norm(path - jnp.asarray(centre, jnp.float32), axis=-1), jnp.inf)  # [B, T]
     touching = dist < reach
     touched = touching.any(axis=1)
@@ -62,7 +68,6 @@ def swept(path: jax.Array, near: jax.Array, centre: tuple[float, float], reach: 
     """[B, 2] where a disk at `centre` ends, in box units [-1, 1], if each point of paths [B, T, 2] that can touch
     (`near` [B, T]) pushes it straight out of its reach: the disk's centre is moved along the line from the point
     to `reach` from it. Geometry only (no friction, no inertia, no rotation)."""
-    low_, high_ = jnp.asarray(low, jnp.float32)[:2], jnp.asarray(high, jnp.float32)[:2]
 
     def step(disk: jax.Array, point: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, None]:
         at, can = point
@@ -73,4 +78,4 @@ def swept(path: jax.Array, near: jax.Array, centre: tuple[float, float], reach: 
 
     start = jnp.broadcast_to(jnp.asarray(centre, jnp.float32), (path.shape[0], 2))
     end, _ = jax.lax.scan(step, start, (jnp.moveaxis(path, 1, 0), near.T))
-    return 2.0 * (end - low_) / (high_ - low_) - 1.0
+    return box_units(end, low, high)

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from envs import kuka
+from envs import contact, kuka
 from envs.manipulation import SETTLE, Manipulation
 
 VIA_POINTS = 5
@@ -62,8 +62,7 @@ class Place(Manipulation):
         below = float(start[2] - start[5]) + half  # the held cube's bottom below the tool's tip, as grasped
         path = self.tool_path(actions)
         bottom = path[..., 2] - below - self.surface_below(path[..., :2])  # [B, T]
-        low, high = jnp.asarray(self.behavior_low, jnp.float32), jnp.asarray(self.behavior_high, jnp.float32)
-        release = 2.0 * (path[:, -1, :2] - low) / (high - low) - 1.0
+        release = contact.box_units(path[:, -1, :2], self.behavior_low, self.behavior_high)
         return jnp.concatenate([release, bottom[:, -1:] / Z_HIGH,
                                 jnp.clip(bottom.min(axis=1, keepdims=True) / Z_HIGH, -1.0, 1.0)], axis=1)
 

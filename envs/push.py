@@ -74,9 +74,8 @@ class Push(Manipulation):
         moving = jnp.linalg.norm(obj - jnp.asarray(kuka.TABLE_CENTRE, jnp.float32), axis=-1) > MOVED
         moved = moving.any(axis=1)
         at = jnp.where(moved, jnp.argmax(moving, axis=1) / (obj.shape[1] - 1), 1.0)
-        low, high = jnp.asarray(self.behavior_low, jnp.float32), jnp.asarray(self.behavior_high, jnp.float32)
         times = [int(self.motion_steps * f) for f in (0.25, 0.5, 0.75)]
-        way = (2.0 * (obj[:, times] - low) / (high - low) - 1.0).reshape(obj.shape[0], -1)
+        way = contact.box_units(obj[:, times], self.behavior_low, self.behavior_high).reshape(obj.shape[0], -1)
         return behaviors, qualities, valid, jnp.concatenate(
             [jnp.where(moved, 1.0, -1.0)[:, None], 2.0 * at[:, None] - 1.0, way], axis=1).astype(jnp.float32)
 

@@ -315,7 +315,7 @@ def _check_results(behaviors: jax.Array, qualities: jax.Array, valid: jax.Array,
     if auxiliary is None:
         if names:
             raise ValueError(f"tell: task {task_name!r} returns auxiliary outputs {names}: pass auxiliary= "
-                             f"[{pop}, {len(names)}], the fourth output of its evaluate")
+                             f"[{pop}, {len(names)}], the fourth output of its evaluate_with_auxiliary")
         auxiliary = jnp.zeros((pop, 0), jnp.float32)
     shapes = {"behaviors": (behaviors.shape, (pop, task.behavior_dim)), "qualities": (qualities.shape, (pop,)),
               "valid": (valid.shape, (pop,)), "auxiliary": (jnp.shape(auxiliary), (pop, len(names)))}

@@ -34,6 +34,7 @@ and `paper_coverage` (Table I's final coverage per preset, for comparison).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 from typing import ClassVar
 
@@ -150,8 +151,10 @@ class Task:
         raise NotImplementedError(f"{type(self).__name__} does not render its skills (Task.frames)")
 
 
+@functools.cache
 def feature_dim(task: Task) -> int:
-    """f, the number of `task.features` (read abstractly: nothing runs)."""
+    """f, the number of `task.features` (read abstractly once per task: nothing runs; the surrogate asks at every
+    trace of its init, predictions and update)."""
     return jax.eval_shape(task.features, jax.ShapeDtypeStruct((1, task.action_dim), jnp.float32)).shape[-1]
 
 
@@ -167,16 +170,18 @@ def check_outputs(task: Task, name: str, batch: int) -> None:
     n, d, m = task.action_dim, task.behavior_dim, len(task.auxiliary)
     want = f"(behaviors [{batch}, {d}] float, qualities [{batch}] float, valid [{batch}] bool"
     actions = jax.ShapeDtypeStruct((batch, n), jnp.float32)
-    for call, expected, shapes, kinds in (
-            (f"evaluate(actions [{batch}, {n}], key)", want + ")", [(batch, d), (batch,), (batch,)],
-             [jnp.floating, jnp.floating, jnp.bool_]),
-            (f"evaluate_with_auxiliary(actions [{batch}, {n}], key, mask)",
-             want + f", auxiliary [{batch}, {m}] float {task.auxiliary})", [(batch, d), (batch,), (batch,), (batch, m)],
-             [jnp.floating, jnp.floating, jnp.bool_, jnp.floating]))[:2 if _overrides_auxiliary(task) else 1]:
+    key = jax.random.PRNGKey(0)
+    checks = [(f"evaluate(actions [{batch}, {n}], key)", lambda a: task.evaluate(a, key), want + ")",
+               [(batch, d), (batch,), (batch,)], [jnp.floating, jnp.floating, jnp.bool_])]
+    if _overrides_auxiliary(task):
+        checks.append((f"evaluate_with_auxiliary(actions [{batch}, {n}], key, mask)",
+                       lambda a: task.evaluate_with_auxiliary(a, key, jnp.ones(batch, bool)),
+                       want + f", auxiliary [{batch}, {m}] float {task.auxiliary})",
+                       [(batch, d), (batch,), (batch,), (batch, m)],
+                       [jnp.floating, jnp.floating, jnp.bool_, jnp.floating]))
+    for call, function, expected, shapes, kinds in checks:
         try:
-            out = jax.eval_shape(lambda a, c=call: (task.evaluate(a, jax.random.PRNGKey(0)) if c.startswith("evaluate(")
-                                                    else task.evaluate_with_auxiliary(a, jax.random.PRNGKey(0),
-                                                                                      jnp.ones(batch, bool))), actions)
+            out = jax.eval_shape(function, actions)
         except Exception as e:  # any failure of user code is reported the same way
             raise ValueError(f"task {name!r}: {call} failed: {e}") from e
         if not (isinstance(out, tuple) and len(out) == len(shapes) and all(
