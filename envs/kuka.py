@@ -16,38 +16,20 @@ a fixed number of iterations, joint limits enforced) runs for a whole batch of
 via-points inside the jitted generation; the same MjModel drives the physics, so
 there is one source of truth.
 
-Two physics backends run the same MjModel behind one interface,
-`rollout(ctrl [..., H, nu], mask [...]) -> (final qpos, sensor readings
-at every step, finite)`:
-
-* `CRollout` ("mujoco", for CPUs): C MuJoCo through `mujoco.rollout` (one MjData
-  per CPU thread), called from inside the jitted generation with
-  `jax.pure_callback` on the whole batch at once (`vmap_method="expand_dims"`: a
-  vmap over seeds also becomes one call). Rows outside the mask are not simulated.
-* `MjxRollout` ("mjx", for accelerators): `mjx.step` in a `lax.scan`, vmapped
-  over the batch; fully traced, so masked rows are simulated and ignored.
+The scenes run on the physics backends of `envs.physics` (`physics.CRollout`,
+`physics.MjxRollout`) from `start_data`.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
 import functools
-import io
 import os
-import sys
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-
-# mujoco.mjx prints "Failed to import warp: ..." (and mujoco_warp) when the optional MuJoCo Warp is not installed;
-# that is expected on a CPU, so the message is held back and anything else it prints passes through.
-with contextlib.redirect_stdout(io.StringIO()) as _printed:
-    from mujoco import mjx, rollout
-sys.stdout.write("".join(line for line in _printed.getvalue().splitlines(keepends=True)
-                         if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp"))))
 
 ASSETS = os.path.join(os.path.dirname(__file__), "assets")
 TABLE_LOW, TABLE_HIGH = (0.25, -0.6), (1.05, 0.6)
@@ -240,35 +222,6 @@ def joint_trajectory(q_start: jax.Array, q_via: jax.Array, durations: jax.Array,
     return q_start + progress @ steps
 
 
-class CRollout:
-    """C MuJoCo rollouts of a batch of control sequences (the actuators' targets) from the scene's start
-    state."""
-
-    def __init__(self, scene: str, q_start: np.ndarray) -> None:
-        self.model = load(scene)
-        data = start_data(self.model, q_start)
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        self.initial_state = np.zeros(mujoco.mj_stateSize(self.model, spec))
-        mujoco.mj_getState(self.model, data, self.initial_state, spec)
-        self.sensors_start = np.array(data.sensordata, np.float32)
-        self.datas = [mujoco.MjData(self.model) for _ in range(os.cpu_count() or 1)]
-
-    def __call__(self, ctrl: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """ctrl [..., H, nu], mask [...] -> final qpos [..., nq], sensors [..., H, ns], finite [...]."""
-        lead, horizon = ctrl.shape[:-2], ctrl.shape[-2]
-        ctrl = np.asarray(ctrl, np.float64).reshape(-1, *ctrl.shape[-2:])
-        rows = np.flatnonzero(np.broadcast_to(np.asarray(mask), lead).reshape(-1))
-        nq, ns = self.model.nq, self.model.nsensordata
-        qpos = np.zeros((ctrl.shape[0], nq), np.float32)
-        sensors = np.zeros((ctrl.shape[0], horizon, ns), np.float32)
-        finite = np.zeros(ctrl.shape[0], bool)
-        if len(rows):
-            state, sensors[rows] = rollout.rollout(self.model, self.datas, self.initial_state[None], ctrl[rows])
-            qpos[rows] = state[:, -1, 1:1 + nq]
-            finite[rows] = np.isfinite(state[:, -1]).all(axis=1)
-        return qpos.reshape(*lead, nq), sensors.reshape(*lead, horizon, ns), finite.reshape(lead)
-
-
 def start_data(model: mujoco.MjModel, q_start: np.ndarray) -> mujoco.MjData:
     """MjData at the start: the arm at q_start and holding it, everything else as in the MJCF; a scene with
     a gripper starts with its object squeezed between the pads (placed there, the pads closed on it, and
@@ -295,65 +248,3 @@ def object_qpos_address(model: mujoco.MjModel) -> int:
     """Where the free joint of the body "object" starts in qpos (its position, then its quaternion)."""
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
     return int(model.jnt_qposadr[model.body_jntadr[body]])
-
-
-# MuJoCo Warp's buffers: contacts per world (a cube on a table touches at up to 8 points; pads and shelves
-# add some) and constraint rows per world (contacts with friction, joint limits, the pads' coupling).
-WARP_CONTACTS_PER_WORLD = 64
-WARP_CONSTRAINTS_PER_WORLD = 512
-
-
-class MjxRollout:
-    """MJX rollouts of a batch of control sequences from the scene's start state (traced; same controls).
-
-    `impl`: "jax" (MJX's JAX implementation: any JAX device) or "warp" (MuJoCo
-    Warp through MJX: NVIDIA GPUs, and Warp's CPU device; needs the `gpu` extra).
-    """
-
-    def __init__(self, scene: str, q_start: np.ndarray, impl: str = "jax") -> None:
-        model = load(scene)
-        data = start_data(model, q_start)
-        self.impl = impl
-        self.model = mjx.put_model(model, impl=impl)
-        if impl == "warp":
-            self._mj_model, self._start = model, data
-            # One flat batch of worlds however the rollouts are vmapped (seeds x population): MuJoCo Warp's
-            # contact buffer is shared by all worlds of a call, so it is sized for the whole batch.
-            self._rollouts = jax.custom_batching.custom_vmap(self._rollouts_flat)
-            self._rollouts.def_vmap(self._rollouts_vmap)
-        else:
-            self.data = mjx.put_data(model, data)
-        self.sensors_start = np.array(data.sensordata, np.float32)
-
-    def __call__(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """ctrl [B, H, nu] -> final qpos [B, nq], sensors [B, H, ns], finite [B]; every row runs."""
-        del mask
-        if self.impl == "warp":
-            return self._rollouts(ctrl)
-        return jax.vmap(lambda c: self._one(self.data, c))(ctrl)
-
-    def _one(self, data: mjx.Data, controls: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """One rollout of controls [H, nu] from `data`."""
-        def step(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, jax.Array]:
-            d = mjx.step(self.model, d.replace(ctrl=u))
-            return d, d.sensordata
-
-        final, sensors = jax.lax.scan(step, data, controls)
-        return final.qpos.astype(jnp.float32), sensors.astype(jnp.float32), jnp.isfinite(final.qpos).all()
-
-    def _rollouts_flat(self, ctrl: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """MuJoCo Warp: ctrl [N, H, u] as one batch of N worlds, with contact and constraint room for all N."""
-        worlds = ctrl.shape[0]
-        data = mjx.make_data(self._mj_model, impl="warp", naconmax=WARP_CONTACTS_PER_WORLD * worlds,
-                             njmax=WARP_CONSTRAINTS_PER_WORLD).replace(
-            qpos=jnp.asarray(self._start.qpos, jnp.float32), qvel=jnp.asarray(self._start.qvel, jnp.float32),
-            ctrl=jnp.asarray(self._start.ctrl, jnp.float32))
-        return jax.vmap(lambda c: self._one(data, c))(ctrl)
-
-    def _rollouts_vmap(self, axis_size: int, in_batched: list[bool],
-                       ctrl: jax.Array) -> tuple[tuple[jax.Array, ...], tuple[bool, ...]]:
-        """Under an outer vmap (seeds): the [S, N] rollouts as one flat batch of S x N worlds."""
-        if not in_batched[0]:
-            ctrl = jnp.broadcast_to(ctrl, (axis_size, *ctrl.shape))
-        out = self._rollouts(ctrl.reshape(-1, *ctrl.shape[2:]))
-        return tuple(x.reshape(axis_size, -1, *x.shape[1:]) for x in out), (True, True, True)

@@ -35,7 +35,6 @@ refused with a clear error.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 
 import jax
 import jax.numpy as jnp
@@ -44,10 +43,9 @@ import numpy as np
 from flax import struct
 from mujoco import rollout
 
-from envs import kuka
+from envs import kuka, physics
 from mqd_jax.core.task import Region, Task
 
-BACKENDS = ("auto", "mujoco", "mjx", "warp")
 SETTLE = 250  # steps (1 s) after the motion for the object to come to rest
 REST_SPEED = 0.01  # m/s: an object faster than this at the end has not come to rest
 # `features`' IK iterations: within 0.05 mm of a rollout's 50 for 90% of random push actions (10x cheaper).
@@ -59,18 +57,6 @@ PAPER_COVERAGE = {
     "push_sphere": {"mqd": (0.685, 0.0185), "qd": (0.560, 0.009), "random": (0.171, 0.004)},
     "place": {"mqd": (0.639, 0.034), "qd": (0.524, 0.009), "random": (0.349, 0.001)},
 }
-
-
-def warp_installed() -> bool:
-    """Whether MuJoCo Warp (and Warp) can be imported."""
-    return importlib.util.find_spec("mujoco_warp") is not None and importlib.util.find_spec("warp") is not None
-
-
-def auto_backend() -> str:
-    """"mujoco" on a CPU, "warp" on a CUDA GPU when MuJoCo Warp is installed, else "mjx"."""
-    if jax.default_backend() == "cpu":
-        return "mujoco"
-    return "warp" if jax.default_backend() == "gpu" and warp_installed() else "mjx"
 
 
 def _surfaces(scene: str) -> list[tuple[str, tuple[float, ...]]]:
@@ -112,24 +98,17 @@ class Manipulation(Task):
     settle: int = SETTLE
 
     def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ValueError(f"backend={self.backend!r} is invalid: expected one of {BACKENDS}")
-        backend = auto_backend() if self.backend == "auto" else self.backend
-        if backend == "warp" and not warp_installed():
-            raise ValueError("backend='warp' needs MuJoCo Warp: pip install -e .[gpu]")
         model = kuka.load(self.scene)
-        if backend == "mjx" and model.opt.integrator == mujoco.mjtIntegrator.mjINT_DISCRETE:
-            raise ValueError(f"scene {self.scene!r} needs MuJoCo's discrete integrator (its friction grasp), which "
-                             "MJX's JAX implementation does not have: use backend='mujoco' (CPUs) or 'warp' "
-                             "(NVIDIA GPUs; pip install -e .[gpu])")
+        try:
+            backend = physics.resolve(self.backend, model)
+        except ValueError as e:
+            raise ValueError(f"scene {self.scene!r}: {e}") from None
         q_start = kuka.start_pose(self.scene)
         object.__setattr__(self, "physics", backend)
         object.__setattr__(self, "_kinematics", kuka.Kinematics(model))
         object.__setattr__(self, "_q_start", q_start)
         object.__setattr__(self, "_timestep", float(model.opt.timestep))
-        rollout = (kuka.CRollout(self.scene, q_start) if backend == "mujoco"
-                   else kuka.MjxRollout(self.scene, q_start, "warp" if backend == "warp" else "jax"))
-        object.__setattr__(self, "_rollout", rollout)
+        object.__setattr__(self, "_rollout", physics.make(backend, model, kuka.start_data(model, q_start)))
 
     @property
     def horizon(self) -> int:
@@ -212,14 +191,7 @@ class Manipulation(Task):
     def simulate(self, ctrl: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """ctrl [B, horizon, nu], mask [B] -> final qpos [B, nq], sensors [B, horizon, ns], finite [B] on the
         task's backend (C MuJoCo skips the rows outside the mask; MJX runs them all)."""
-        if self.physics != "mujoco":
-            return self._rollout(ctrl, mask)
-        model = kuka.load(self.scene)
-        batch = ctrl.shape[0]
-        shapes = (jax.ShapeDtypeStruct((batch, model.nq), jnp.float32),
-                  jax.ShapeDtypeStruct((batch, self.horizon, model.nsensordata), jnp.float32),
-                  jax.ShapeDtypeStruct((batch,), jnp.bool_))
-        return jax.pure_callback(self._rollout, shapes, ctrl, mask, vmap_method="expand_dims")
+        return physics.simulate(self._rollout, kuka.load(self.scene), ctrl, mask)
 
     def evaluate_masked(self, actions: jax.Array, key: jax.Array,
                         mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -258,7 +230,8 @@ class Manipulation(Task):
         """The skill `action` [n] on C MuJoCo (whatever the backend), a frame every `every` steps, seen from the
         front left with the headlight turned up. Needs an OpenGL context (MUJOCO_GL=egl offscreen)."""
         model = kuka.load(self.scene)
-        c = self._rollout if isinstance(self._rollout, kuka.CRollout) else kuka.CRollout(self.scene, self._q_start)
+        c = (self._rollout if isinstance(self._rollout, physics.CRollout)
+             else physics.CRollout(model, kuka.start_data(model, self._q_start)))
         ctrl = np.asarray(self.rollout_controls(jnp.asarray(action, jnp.float32)[None]), np.float64)
         state, _ = rollout.rollout(c.model, c.datas[:1], c.initial_state[None], ctrl)
         model.vis.headlight.ambient[:] = 0.45

@@ -21,7 +21,7 @@ For each task and composition, from the mean over seeds of coverage [G] and roll
     its 90% percentile bootstrap interval over seeds (the mean curve crosses late, where it is
     flat, so this figure moves much more from seed to seed than the coverage does);
   * coverage after 25%, 50% and 100% of QD's rollouts (linear between generations);
-  * mean quality of the repertoire after QD's rollouts;
+  * mean quality and QD-score of the repertoire after QD's rollouts;
   * ms per generation (the batch's wall time after compiling, per generation) and its ratio to QD's
     in the same invocation (not with --sweep: its runs were timed in other processes).
 The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
@@ -169,6 +169,7 @@ def _curves(metrics: dict[str, np.ndarray], warmup_samples: int) -> dict[str, An
             "seed_coverage": np.round(np.asarray(metrics["coverage"], float), 6).tolist(),
             "coverage": np.mean(metrics["coverage"], 0).tolist(),
             "mean_quality": np.mean(metrics["mean_quality"], 0).tolist(),
+            **({"qd_score": np.mean(metrics["qd_score"], 0).tolist()} if "qd_score" in metrics else {}),
             "final_coverage": np.asarray(metrics["coverage"])[:, -1].tolist(),
             "invalid_share": float(np.sum(metrics["invalid"]) / np.sum(metrics["evaluations"]))
             if "invalid" in metrics else float("nan"), **diagnostics}
@@ -215,6 +216,7 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
     at = [f"{np.interp(f * budget, curve['rollouts'], curve['coverage']):.3f}"
           + ("*" if f * budget > curve["rollouts"][-1] + 0.5 else "") for f in FRACTIONS]
     quality = np.interp(budget, curve["rollouts"], curve["mean_quality"])
+    qd_score = f"{np.interp(budget, curve['rollouts'], curve['qd_score']):.1f}" if "qd_score" in curve else ""
     final = np.asarray(curve["final_coverage"])
     timing = [f"{curve['ms_per_generation']:.1f}", f"{curve['ms_per_generation'] / qd['ms_per_generation']:.2f}"] \
         if timed else ["", ""]
@@ -225,7 +227,7 @@ def _row(name: str, curve: dict[str, Any], qd: dict[str, Any], timed: bool) -> l
     if SKILLS in curve and SKILLS in qd and abs(curve["rollouts"][-1] - budget) < 0.5:
         gap, share = quality_on_shared_niches(curve[SKILLS], qd[SKILLS], curve["t_dist"])
         shared = f"{gap:+.3f} ({share:.2f})"
-    return [name, to_qd, _interval_text(rollouts_to_qd_interval(curve, qd)), *at, f"{quality:.3f}", shared,
+    return [name, to_qd, _interval_text(rollouts_to_qd_interval(curve, qd)), *at, f"{quality:.3f}", qd_score, shared,
             f"{final.mean():.3f} +- {final.std():.3f}",
             f"{curve['rollouts'][-1]:.0f}", *timing, *diagnostics]
 
@@ -406,7 +408,9 @@ def main() -> None:
              "seeds and of QD's; QD's mean held fixed where its per-seed curves are not in its file; blank for "
              "curves from files written before per-seed curves; \"never\": resamples that never reach it). "
              "Coverage at 25/50/100% of QD's rollouts (* = the composition spent fewer in all: its "
-             "final value). Quality = the repertoire's mean quality after QD's rollouts. Quality on QD's niches: "
+             "final value). Quality = the repertoire's mean quality after QD's rollouts; QD-score = the sum over its skills "
+             "of quality minus the task's lowest quality (`quality_range`), after QD's rollouts (blank in files written "
+             "before it). Quality on QD's niches: "
              "over QD's final skills with one of the composition's final skills within t_dist (same seed; the share "
              "of QD's skills that have one in brackets), the mean of the nearest such skill's quality minus QD's; "
              "blank where QD ran in another process or the composition spent other rollouts than QD."
@@ -420,7 +424,7 @@ def main() -> None:
              "the generations past warm-up.",
              ""]
     header = ["composition", "rollouts to QD", "90% interval", "cov @25%", "cov @50%", "cov @100%", "quality",
-              "quality on QD's niches", "final coverage",
+              "QD-score", "quality on QD's niches", "final coverage",
               "rollouts", "ms/gen", "x QD", "invalid", "opener AUC", "model share", "steered", "steering share",
               "validity AUC", "held-out error"]
     for task, by in curves.items():

@@ -27,3 +27,20 @@ class Reach(Task):
 
 def make_reach(**changes) -> Reach:
     return Reach((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0), **changes)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Waves(Task):
+    """Behaviors in d dimensions: behavior_j = (1 + sin(a_j + a_{j+1} / 2)) / 2 in [0, 1]^d for actions of d + 1
+    numbers in [-2, 2]; quality = -mean(a^2) / 4."""
+
+    quality_range = (-1.0, 0.0)
+
+    def evaluate(self, actions, key):
+        d = self.behavior_dim
+        behaviors = (1 + jnp.sin(actions[:, :d] + actions[:, 1:d + 1] / 2)) / 2
+        return behaviors, -(actions**2).mean(1) / 4, jnp.ones(actions.shape[0], bool)
+
+
+def make_waves(dims: int = 3) -> Waves:
+    return Waves((-2.0,) * (dims + 1), (2.0,) * (dims + 1), (0.0,) * dims, (1.0,) * dims)

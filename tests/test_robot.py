@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from mujoco import rollout
 
-from envs import kuka
+from envs import kuka, physics
 from mqd_jax import Config, run_mqd
 from mqd_jax.core import registry
 
@@ -97,9 +97,9 @@ def test_the_backends_agree_with_c_mujoco_on_pushes_and_on_the_arm_touching_the_
     # MJX compiles a program for ~40 s on this CPU, and `evaluate` judges outcomes and touches from the
     # sensors alike on every backend, so the backends are compared on `simulate`. Short horizon.
     # MuJoCo Warp runs on Warp's CPU device here (its kernels compile for about 90 s the first time).
-    from envs import manipulation, push
+    from envs import push
 
-    if backend == "warp" and not manipulation.warp_installed():
+    if backend == "warp" and not physics.warp_installed():
         pytest.skip("MuJoCo Warp is not installed (pip install -e .[gpu])")
     pushes = jnp.array([[0.45, 0.25, 0.0, 40, 0.5, 0.25, 0.0, 40],
                         [0.5, 0.012, 0.0, 30, 0.75, 0.012, 0.0, 50]], jnp.float32)
@@ -269,9 +269,9 @@ def test_unreachable_via_points_and_objects_still_moving_make_a_rollout_invalid(
 
 
 def test_the_warp_backend_without_mujoco_warp_is_refused_with_the_extra_to_install(monkeypatch):
-    from envs import manipulation, push
+    from envs import push
 
-    monkeypatch.setattr(manipulation, "warp_installed", lambda: False)
+    monkeypatch.setattr(physics, "warp_installed", lambda: False)
     with pytest.raises(ValueError, match=r"backend='warp' needs MuJoCo Warp: pip install -e \.\[gpu\]"):
         push.make("push_cube", 0.025, backend="warp")
-    assert manipulation.auto_backend() == "mujoco"  # on a CPU
+    assert physics.auto_backend() == "mujoco"  # on a CPU

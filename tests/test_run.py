@@ -31,6 +31,10 @@ def test_coverage_grows_and_metrics_are_consistent(task, tiny):
     assert int(state.archive.total) == int(m["num_evaluations"][-1] - m["invalid"].sum() - m["added"].sum())
     q = np.asarray(rep.qualities[:n])
     assert float(m["mean_quality"][-1]) == pytest.approx(q.mean(), rel=1e-5)
+    # The standard metrics (pyribs' and QDax's definitions): QD-score = sum of (quality - the task's lowest quality).
+    q_low = cfg_task(cfg).quality_range[0]
+    assert float(m["max_quality"][-1]) == pytest.approx(q.max(), rel=1e-6)
+    assert float(m["qd_score"][-1]) == pytest.approx((q - q_low).sum(), rel=1e-5)
     low, high = np.asarray(cfg_task(cfg).action_low), np.asarray(cfg_task(cfg).action_high)
     a = np.asarray(rep.actions[:n])
     assert np.all((a >= low) & (a <= high))

@@ -100,6 +100,7 @@ def _batch_on(devices):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.fusion_emitters  # two programs (one and two devices) agree bit for bit with XLA's default emitters
 def test_the_run_axis_is_split_over_devices_and_padded():
     """Two CPU devices (forced): 3 runs are padded to 4, laid out 2 per device, and agree with one device."""
     one, two = _batch_on(1), _batch_on(2)

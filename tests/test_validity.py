@@ -96,6 +96,7 @@ def composed(validity):
                         warmup_samples=32, fallback=Fallback(), steering=Steering(share=0.3))
 
 
+@pytest.mark.fusion_emitters  # two programs (with and without the classifier) agree bit for bit
 def test_without_unusable_rollouts_a_run_is_the_same_as_without_the_classifier(tiny):
     cfg = tiny(task=half_usable(everywhere=True), algorithm=composed(None))
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mqd_jax.core import algorithms, registry
+from mqd_jax.core import algorithms, coverage, registry
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.emitter import Emitter
 from mqd_jax.core.params import Params
@@ -83,6 +83,9 @@ class Config:
       neighbour_slack: neighbour-list length kept per skill beyond k (longer lists are recomputed less often
         when neighbours are replaced; changes no result).
       coverage_resolution: cells per behavior-space axis of the coverage grid.
+      coverage_samples: points of the Monte Carlo coverage estimate, used where the grid does not fit its memory
+        bound (`mqd_jax.core.coverage.method`: behavior spaces of 4 or more dimensions, and 3 at the default
+        resolution); a multiple of 4096, at most 2^22. Its standard error is at most 0.5 / sqrt(points).
     """
 
     task: str | Task = "obstacle2d"
@@ -96,6 +99,7 @@ class Config:
     archive_capacity: int = 4096
     neighbour_slack: int = 3
     coverage_resolution: int = 256
+    coverage_samples: int = 65536
 
     def __post_init__(self) -> None:
         # numpy scalars (np.int64(10), np.float32(0.02)) become the Python values they hold, so that
@@ -115,6 +119,9 @@ class Config:
                          ("archive_capacity", 1), ("neighbour_slack", 0), ("coverage_resolution", 8)):
             v = getattr(self, name)
             _check(is_int(v) and v >= lo, name, v, f"an int >= {lo}")
+        _check(is_int(self.coverage_samples) and 0 < self.coverage_samples <= coverage.MAX_SAMPLES
+               and self.coverage_samples % coverage.SAMPLE_CHUNK == 0, "coverage_samples", self.coverage_samples,
+               f"a multiple of {coverage.SAMPLE_CHUNK} up to {coverage.MAX_SAMPLES}")
         _check(is_real(self.t_dist) and self.t_dist > 0, "t_dist", self.t_dist, "a finite float > 0")
         _check(self.population_size <= self.capacity, "population_size", self.population_size,
                f"an int <= capacity ({self.capacity})")
@@ -164,9 +171,12 @@ class Config:
 
     @classmethod
     def paper(cls, task: str, **overrides: Any) -> Config:
-        """Table II's column for `task`: the robotic one for the KUKA tasks, else the 2D one."""
-        column = (registry.make(task) if isinstance(task, str) else task).table_ii_column
-        return (cls.paper_robot if column == "robot" else cls.paper_2d)(task=task, **overrides)
+        """Table II's column for `task`: the robotic one for the robot tasks, else the 2D one; the task's
+        `default_t_dist` where it declares one and `t_dist` is not given."""
+        made = registry.make(task) if isinstance(task, str) else task
+        scale = {} if made.default_t_dist is None else {"t_dist": made.default_t_dist}
+        return (cls.paper_robot if made.table_ii_column == "robot" else cls.paper_2d)(task=task, **{**scale,
+                                                                                                  **overrides})
 
     @property
     def task_name(self) -> str:
@@ -280,8 +290,10 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
 
 def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
     """A config dict of version 0.10 or later in today's options: "mqd" without `features` (before version 0.11)
-    took neither the task's features nor a gate."""
+    took neither the task's features nor a gate; a config without `coverage_samples` (before version 0.12, when
+    every behavior space had two dimensions and a coverage grid) takes today's default, which a grid does not
+    read."""
     options = dict(saved.get("algorithm_options", {}))
     if saved.get("algorithm") == "mqd" and "features" not in options:
         options.update(features=False, gate=False)
-    return {**saved, "algorithm_options": options}
+    return {"coverage_samples": Config.coverage_samples, **saved, "algorithm_options": options}

@@ -30,7 +30,8 @@ from mqd_jax.core.task import Task, check_outputs
 # The metrics of every generation (scalars; see `run_mqd`) and their dtypes; the emitter adds its own
 # (`metric_dtypes`). A skipped generation reports zeros of these without tracing a generation to find out.
 METRICS = {
-    "coverage": jnp.float32, "mean_quality": jnp.float32, "repertoire_size": jnp.int32,
+    "coverage": jnp.float32, "mean_quality": jnp.float32, "max_quality": jnp.float32, "qd_score": jnp.float32,
+    "repertoire_size": jnp.int32,
     "num_evaluations": jnp.int32, "evaluations": jnp.int32, "added": jnp.int32, "replaced": jnp.int32,
     "rejected": jnp.int32, "dropped_full": jnp.int32, "invalid": jnp.int32, "out_of_range": jnp.int32,
     "out_of_box": jnp.int32,
@@ -44,7 +45,7 @@ class State:
     Attributes:
       repertoire: the skills found so far (capacity C).
       archive: skills rejected or replaced (ring buffer of size A).
-      coverage: coverage grid of the repertoire's disks.
+      coverage: the repertoire's balls' counts on the coverage grid or Monte Carlo points.
       emitter: the emitter's state (M-QD: `model_emitter.ModelEmitterState`, which holds the model).
       key: PRNG key for the next generation.
       generation: int32, generations done.
@@ -53,7 +54,7 @@ class State:
 
     repertoire: repertoire.Repertoire
     archive: archive_lib.Archive
-    coverage: coverage.CoverageGrid
+    coverage: coverage.Grid | coverage.Samples
     emitter: Any
     key: jax.Array
     generation: jax.Array
@@ -82,13 +83,32 @@ def metric_dtypes(cfg: Config) -> dict[str, Any]:
     return {**METRICS, **cfg.emitter.metrics()}
 
 
-@functools.cache
-def _reachable(cfg: Config) -> np.ndarray:
-    """[G, G] reachable cells of the coverage grid, computed once per config."""
+def coverage_method(cfg: Config) -> str:
+    """How `cfg`'s coverage is measured: `coverage.GRID` (cell centres) or `coverage.MONTE_CARLO` (with its
+    standard error), whichever fits the memory bounds (`coverage.method`); decided before anything is allocated."""
     task = get_task(cfg)
-    centres = coverage.cell_centres(np.asarray(task.behavior_low), np.asarray(task.behavior_high),
-                                    cfg.coverage_resolution)
-    return task.reachable(centres)
+    return coverage.method(np.asarray(task.behavior_low), np.asarray(task.behavior_high), cfg.coverage_resolution,
+                           cfg.t_dist, 2 * cfg.population_size)
+
+
+@functools.cache
+def coverage_points(cfg: Config) -> tuple[np.ndarray | None, np.ndarray]:
+    """Where `cfg`'s coverage is measured, computed once per config: (None, reachable [G] * d cells) for a grid,
+    (points [M, d], reachable [M]) for a Monte Carlo estimate."""
+    task = get_task(cfg)
+    low, high = np.asarray(task.behavior_low), np.asarray(task.behavior_high)
+    if coverage_method(cfg) == coverage.GRID:
+        return None, task.reachable(coverage.cell_centres(low, high, cfg.coverage_resolution))
+    points = coverage.sample_points(low, high, cfg.coverage_samples)
+    return points, task.reachable(points)
+
+
+def _empty_coverage(cfg: Config) -> coverage.Grid | coverage.Samples:
+    task = get_task(cfg)
+    points, reachable = coverage_points(cfg)
+    if points is None:
+        return coverage.empty(np.asarray(task.behavior_low), np.asarray(task.behavior_high), reachable, cfg.t_dist)
+    return coverage.empty_samples(points, reachable)
 
 
 def init(key: jax.Array, cfg: Config) -> State:
@@ -112,8 +132,7 @@ def _init(key: jax.Array, cfg: Config) -> State:
     return State(
         repertoire=repertoire.Repertoire.empty(cfg.capacity, n, d, cfg.neighbours),
         archive=archive_lib.Archive.empty(cfg.archive_capacity, n, d),
-        coverage=coverage.empty(np.asarray(task.behavior_low), np.asarray(task.behavior_high),
-                                _reachable(cfg), cfg.t_dist),
+        coverage=_empty_coverage(cfg),
         emitter=cfg.emitter.init(k_emitter, task),
         key=key,
         generation=jnp.int32(0),
@@ -127,7 +146,7 @@ def _state_shapes(cfg: Config) -> State:
     return jax.eval_shape(lambda k: init(k, cfg), jax.ShapeDtypeStruct((2,), jnp.uint32))
 
 
-registry.on_replace(_reachable.cache_clear)
+registry.on_replace(coverage_points.cache_clear)
 registry.on_replace(_state_shapes.cache_clear)
 
 
@@ -259,9 +278,9 @@ def _archive(arch: archive_lib.Archive, before: repertoire.Repertoire, actions: 
 
 
 @stage("coverage")
-def _cover(grid: coverage.CoverageGrid, before: repertoire.Repertoire, evaluated: Evaluated,
-           ins: repertoire.Insertion, t_dist: jax.Array) -> coverage.CoverageGrid:
-    """Stage coverage: unstamps the replaced skills' disks and stamps the new skills' disks."""
+def _cover(grid: coverage.Grid | coverage.Samples, before: repertoire.Repertoire, evaluated: Evaluated,
+           ins: repertoire.Insertion, t_dist: jax.Array) -> coverage.Grid | coverage.Samples:
+    """Stage coverage: unstamps the replaced skills' balls and stamps the new skills' balls."""
     from_old = ins.victim_slot >= 0
     return coverage.stamp(
         grid, jnp.concatenate([before.behaviors[jnp.maximum(ins.victim_slot, 0)], evaluated.behaviors]),
@@ -293,6 +312,8 @@ def _metrics(state: State, candidates: Candidates, evaluated: Evaluated, task: T
     return {
         "coverage": coverage.fraction(state.coverage),
         "mean_quality": jnp.where(rep.valid, rep.qualities, 0.0).sum() / jnp.maximum(rep.count, 1),
+        "max_quality": jnp.where(rep.valid, rep.qualities, q_low).max(),
+        "qd_score": jnp.where(rep.valid, rep.qualities - q_low, 0.0).sum(),
         "repertoire_size": rep.count,
         "num_evaluations": state.num_evaluations,
         "evaluations": candidates.rollout.sum(dtype=jnp.int32),

@@ -1,7 +1,7 @@
 """The task protocol: what a task gives the QD engine.
 
-A task is a bounded action box, a bounded 2D behavior box (plus the reachable
-part of it, for coverage), and a pure, vmappable rollout:
+A task is a bounded action box, a bounded behavior box of 1 to 8 dimensions
+(plus the reachable part of it, for coverage), and a pure, vmappable rollout:
 
     evaluate(actions[B, n], key) -> (behaviors[B, d], qualities[B], valid[B])
 
@@ -76,6 +76,8 @@ class Task:
         (a class attribute; default none).
       table_ii_column: "2d" or "robot": the paper's Table II column of
         defaults that `Config.paper` gives this task.
+      default_t_dist: the `t_dist` `Config.paper` gives this task when none is given, for a behavior space whose
+        scale is not Table II's (None: Table II's 0.02); in behavior units.
       paper_seeds: runs per algorithm in the paper's experiments (`mqd sweep`'s default).
       paper_coverage: the paper's Table I, {preset: (mean, std) final coverage};
         empty for tasks the paper does not have.
@@ -84,6 +86,7 @@ class Task:
     quality_range: ClassVar[tuple[float, float]] = (0.0, 1.0)
     auxiliary: ClassVar[tuple[str, ...]] = ()
     table_ii_column: ClassVar[str] = "2d"
+    default_t_dist: ClassVar[float | None] = None
     paper_seeds: ClassVar[int] = 25
     paper_coverage: ClassVar[Mapping[str, tuple[float, float]]] = {}
 
@@ -199,8 +202,9 @@ def check_outputs(task: Task, name: str, batch: int) -> None:
                          f"got {got}")
 
 
-# Behavior spaces the library supports today (coverage grid, figures, the model's outputs).
-BEHAVIOR_DIMS = (2,)
+# Behavior spaces the library supports: novelty, insertion, coverage (`mqd_jax.core.coverage`), the model's outputs,
+# adaptation and figures (pairwise projections beyond 2) work in any of these dimensions.
+BEHAVIOR_DIMS = tuple(range(1, 9))
 
 
 def _bounds(task: Task, name: str, field: str) -> np.ndarray:
@@ -237,8 +241,9 @@ def check_task(task: Task, name: str) -> None:
             raise ValueError(f"task {name!r}: the {kind} box is empty in dimension {i} ({kind}_low[{i}]="
                              f"{low[i]} is not below {kind}_high[{i}]={high[i]}): give low < high in every dimension")
     if task.behavior_dim not in BEHAVIOR_DIMS:
-        raise ValueError(f"task {name!r}: a behavior space of {task.behavior_dim} dimensions is not supported yet "
-                         f"(supported: {', '.join(map(str, BEHAVIOR_DIMS))})")
+        raise ValueError(f"task {name!r}: a behavior space of {task.behavior_dim} dimensions is not supported "
+                         f"(supported: {BEHAVIOR_DIMS[0]} to {BEHAVIOR_DIMS[-1]}): describe skills with fewer numbers, "
+                         "e.g. a projection of the behavior")
     aux = task.auxiliary
     if not (isinstance(aux, tuple) and all(isinstance(a, str) and a for a in aux) and len(set(aux)) == len(aux)):
         raise ValueError(f"task {name!r}: auxiliary={aux!r} is invalid: expected a tuple of distinct names")
@@ -252,5 +257,8 @@ def check_task(task: Task, name: str) -> None:
         raise ValueError(f"task {name!r}: quality_range={q!r} is invalid: expected finite (low, high) with low < high")
     if task.table_ii_column not in ("2d", "robot"):
         raise ValueError(f"task {name!r}: table_ii_column={task.table_ii_column!r} is invalid: '2d' or 'robot'")
+    t = task.default_t_dist
+    if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
+        raise ValueError(f"task {name!r}: default_t_dist={t!r} is invalid: None or a finite float > 0")
     if not (isinstance(task.paper_seeds, int) and not isinstance(task.paper_seeds, bool) and task.paper_seeds >= 1):
         raise ValueError(f"task {name!r}: paper_seeds={task.paper_seeds!r} is invalid: an int >= 1")
