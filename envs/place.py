@@ -34,9 +34,10 @@ import math
 import jax
 import jax.numpy as jnp
 import mujoco
+import numpy as np
 
 from envs import contact, kuka
-from envs.manipulation import SETTLE, Manipulation
+from envs.manipulation import SETTLE, Manipulation, _surfaces
 
 VIA_POINTS = 5
 T_MIN, T_MAX = 25.0, 100.0
@@ -57,12 +58,11 @@ class Place(Manipulation):
     def features(self, actions: jax.Array) -> jax.Array:
         """[B, 4]: the release point (x, y) in behavior-box units, the drop there and the path's lowest clearance
         (`tool_path`; heights in units of Z_HIGH, clearance clipped to [-1, 1])."""
-        model, start = kuka.load(self.scene), self._rollout.sensors_start
-        half = float(model.geom_size[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "object")][2])
-        below = float(start[2] - start[5]) + half  # the held cube's bottom below the tool's tip, as grasped
+        start = self._rollout.sensors_start
+        below = float(start[2] - start[5]) + _cube_half_size()  # the held cube's bottom below the tool's tip
         path = self.tool_path(actions)
         bottom = path[..., 2] - below - self.surface_below(path[..., :2])  # [B, T]
-        release = contact.box_units(path[:, -1, :2], self.behavior_low, self.behavior_high)
+        release = contact.box_units(path[:, -1, :2], self.behavior_low[:2], self.behavior_high[:2])
         return jnp.concatenate([release, bottom[:, -1:] / Z_HIGH,
                                 jnp.clip(bottom.min(axis=1, keepdims=True) / Z_HIGH, -1.0, 1.0)], axis=1)
 
@@ -93,3 +93,35 @@ def make(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION
     high = (*kuka.VIA_HIGH, Z_HIGH, h, t_max) * VIA_POINTS
     return Place(low, high, kuka.TABLE_LOW, kuka.TABLE_HIGH, scene="place", backend=backend,
                  motion_steps=motion_steps, settle=settle)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Place3D(Place):
+    """Place with a 3-D behavior: the cube's final (x, y, z), z in [0, the highest surface's top + the cube's
+    size]. Reachable: where the cube's centre is within its half size of resting on the table or a shelf (a
+    slab over each surface as thick as the cube); coverage is measured there (`mqd_jax.core.coverage`)."""
+
+    def outcome(self, sensors: jax.Array, durations: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        _, qualities, held = super().outcome(sensors, durations)
+        return sensors[:, -1, 3:6], qualities, held
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        with jax.ensure_compile_time_eval():  # host side, also where a run's initial state is being traced
+            surface = np.asarray(self.surface_below(jnp.asarray(points[..., :2], jnp.float32)))
+        above = points[..., 2] - surface
+        return (above >= 0.0) & (above <= 2 * _cube_half_size())
+
+
+def _cube_half_size() -> float:
+    model = kuka.load("place")
+    return float(model.geom_size[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "object")][2])
+
+
+def make_3d(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION_STEPS,
+            settle: int = RELEASE_DELAY + SETTLE) -> Place3D:
+    """place3d: Place with the cube's final 3-D position as its behavior; options as `make`'s."""
+    flat = make(backend, t_max, motion_steps, settle)
+    top = float(max(box[4] for _, box in _surfaces("place")))
+    return Place3D(flat.action_low, flat.action_high, (*kuka.TABLE_LOW, 0.0),
+                   (*kuka.TABLE_HIGH, top + 4 * _cube_half_size()), scene="place", backend=backend,
+                   motion_steps=motion_steps, settle=settle)

@@ -82,7 +82,8 @@ class Config:
       capacity, archive_capacity: repertoire and rejected-archive sizes (fixed-size masked arrays).
       neighbour_slack: neighbour-list length kept per skill beyond k (longer lists are recomputed less often
         when neighbours are replaced; changes no result).
-      coverage_resolution: cells per behavior-space axis of the coverage grid.
+      coverage_resolution: cells per behavior-space axis of the coverage grid (in one dimension its square: as many
+        cells as in two).
       coverage_samples: points of the Monte Carlo coverage estimate, used where the grid does not fit its memory
         bound (`mqd_jax.core.coverage.method`: behavior spaces of 4 or more dimensions, and 3 at the default
         resolution); a multiple of 4096, at most 2^22. Its standard error is at most 0.5 / sqrt(points).

@@ -6,7 +6,8 @@ divided by the reachable volume. It is kept incrementally, as a count per point
 of the balls that cover it, so a generation only stamps the balls of the skills
 it added and unstamps those of the skills it replaced. The points are either
 
-* `Grid`: the centres of a G^d grid of cells, G = `Config.coverage_resolution`;
+* `Grid`: the centres of a G^d grid of cells, G = `Config.coverage_resolution`
+  (its square in one dimension: as many cells as in two; `axis_cells`);
   a ball is stamped on the (2 reach + 1)^d cells around it. Chosen when the grid
   and a generation's stamps fit the memory bounds (`MAX_GRID_CELLS`,
   `MAX_STAMP_CELLS`): every 2-D task at the default 256 cells per axis, 1-D tasks,
@@ -91,12 +92,18 @@ def _reach(low: np.ndarray, high: np.ndarray, resolution: int, max_radius: float
     return math.ceil(max_radius / cell) + 1
 
 
+def axis_cells(d: int, resolution: int) -> int:
+    """Cells per axis of a grid of `resolution` in d dimensions: `resolution`, squared in one dimension."""
+    return resolution**2 if d == 1 else resolution
+
+
 def method(low: np.ndarray, high: np.ndarray, resolution: int, max_radius: float, stamps: int) -> str:
-    """`GRID` when a grid of `resolution`^d cells and `stamps` balls of radius up to `max_radius` a generation fit
+    """`GRID` when a grid of `axis_cells`^d cells and `stamps` balls of radius up to `max_radius` a generation fit
     `MAX_GRID_CELLS` and `MAX_STAMP_CELLS`, else `MONTE_CARLO`. Decided before anything is allocated."""
     d = len(low)
-    window = (2 * _reach(low, high, resolution, max_radius) + 1) ** d
-    return GRID if resolution**d <= MAX_GRID_CELLS and stamps * window <= MAX_STAMP_CELLS else MONTE_CARLO
+    g = axis_cells(d, resolution)
+    window = (2 * _reach(low, high, g, max_radius) + 1) ** d
+    return GRID if g**d <= MAX_GRID_CELLS and stamps * window <= MAX_STAMP_CELLS else MONTE_CARLO
 
 
 def empty(low: np.ndarray, high: np.ndarray, reachable: np.ndarray, max_radius: float) -> Grid:

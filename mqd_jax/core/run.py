@@ -98,7 +98,8 @@ def coverage_points(cfg: Config) -> tuple[np.ndarray | None, np.ndarray]:
     task = get_task(cfg)
     low, high = np.asarray(task.behavior_low), np.asarray(task.behavior_high)
     if coverage_method(cfg) == coverage.GRID:
-        return None, task.reachable(coverage.cell_centres(low, high, cfg.coverage_resolution))
+        return None, task.reachable(coverage.cell_centres(low, high, coverage.axis_cells(len(low),
+                                                                                       cfg.coverage_resolution)))
     points = coverage.sample_points(low, high, cfg.coverage_samples)
     return points, task.reachable(points)
 

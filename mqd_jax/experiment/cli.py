@@ -264,6 +264,7 @@ def _run(args: argparse.Namespace) -> None:
             fresh = _command(args, drop=("--resume",), add=("--overwrite",))
             raise ValueError(f"{e}; the run cannot continue from it: `{fresh}` starts it afresh") from e
         meta = {"config": cfg.to_dict(), "seed": args.seed, "key": np.asarray(key).tolist(),
+                "coverage_measured": results.coverage_measure(cfg, metrics["coverage"][-1]),
                 "implementation": results.implementation(cfg), "provenance": provenance()}
         folders.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
         n = int(state.repertoire.count)
@@ -275,8 +276,10 @@ def _run(args: argparse.Namespace) -> None:
         figure = plots.run_figure(get_task(cfg), metrics, rep.behaviors[:n], os.path.join(args.out, "run.png"),
                                   title, description)
     written = [f for f in RUN_FILES if f != "run.png" or figure]
-    print(f"done: coverage {metrics['coverage'][-1]:.3f}, mean quality {metrics['mean_quality'][-1]:.3f}, "
-          f"{n} skills, {int(metrics['num_evaluations'][-1])} evaluations, "
+    print(f"done: coverage {metrics['coverage'][-1]:.3f} ({results.coverage_measure(cfg, metrics['coverage'][-1])}), "
+          f"QD-score {metrics['qd_score'][-1]:.2f}, max quality {metrics['max_quality'][-1]:.3f}, "
+          f"mean quality {metrics['mean_quality'][-1]:.3f}, {n} skills, "
+          f"{int(metrics['num_evaluations'][-1])} evaluations, "
           f"{time.perf_counter() - began:.1f} s (compilation included); wrote "
           + ", ".join(os.path.join(args.out, f) for f in written))
 
@@ -377,14 +380,18 @@ def _adapt(args: argparse.Namespace) -> None:
         _plot(args.dir)
 
 
-def _plot(out: str) -> None:
-    """Tables (markdown) and figures of everything in the results folder `out` (call holding its lock)."""
+def _plot(out: str, pair: tuple[int, int] | None = None) -> None:
+    """Tables (markdown) and figures of everything in the results folder `out` (call holding its lock); `pair`:
+    the two behavior dimensions (0-based) Figure 2 shows of a task with more than two."""
     runs = results.load_runs(out)
+    if pair is not None:  # checked against every task before anything is written
+        for by_alg in runs.values():
+            plots.projections(get_task(next(iter(by_alg.values())).cfg).behavior_dim, pair)
     results.remove_derived(out)
     results.write_markdown(results.tables(runs), os.path.join(out, "table1.md"))
     for task, by_alg in runs.items():
         plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg,
-                      os.path.join(out, f"fig2_{results.file_name(task)}.png"))
+                      os.path.join(out, f"fig2_{results.file_name(task)}.png"), pair)
     try:
         found, stale = results.adaptation(out)
     except folders.Damaged as e:
@@ -419,6 +426,9 @@ def _render(args: argparse.Namespace) -> None:
     actions, behaviors = arrays["actions"], arrays["behaviors"]
     if args.goal is not None and not all(math.isfinite(g) for g in args.goal):
         raise ValueError(f"--goal {' '.join(map(str, args.goal))} is invalid: expected finite numbers")
+    if args.goal is not None and len(args.goal) != behaviors.shape[1]:
+        raise ValueError(f"--goal {' '.join(map(str, args.goal))} has {len(args.goal)} numbers: the task's behaviors "
+                         f"have {behaviors.shape[1]}")
     if args.goal is not None:
         index = int(np.argmin(np.linalg.norm(behaviors - np.asarray(args.goal), axis=1)))
     elif 0 <= args.index < len(actions):
@@ -440,8 +450,9 @@ def _render(args: argparse.Namespace) -> None:
 
 
 def _locked_plot(args: argparse.Namespace) -> None:
+    pair = None if args.pair is None else (args.pair[0] - 1, args.pair[1] - 1)
     with folders.lock(args.dir, create=False):
-        _plot(args.dir)
+        _plot(args.dir, pair)
 
 
 def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
@@ -499,13 +510,16 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
 
     pl = sub.add_parser("plot", help="tables and figures of a results folder")
     pl.add_argument("dir")
+    pl.add_argument("--pair", type=int, nargs=2, metavar=("I", "J"), default=None,
+                    help="for tasks with more than two behavior dimensions, Figure 2 shows behaviors I and J "
+                         "(1-based; default: 1 and 2)")
 
     rd = sub.add_parser("render", help="watch a skill of a `mqd run` folder: an animated GIF")
     rd.add_argument("dir", help="a results folder of `mqd run`")
     which = rd.add_mutually_exclusive_group()
     which.add_argument("--index", type=int, default=0, help="the skill's row in repertoire.npz (default: 0)")
-    which.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), default=None,
-                       help="the skill whose behavior is nearest to this one")
+    which.add_argument("--goal", type=float, nargs="+", metavar="B", default=None,
+                       help="the skill whose behavior is nearest to this one (d numbers)")
     rd.add_argument("--out", default=None, help="the GIF to write (default: DIR/skill_<index>.gif)")
     rd.add_argument("--width", type=_positive, default=320)
     rd.add_argument("--height", type=_positive, default=240)

@@ -58,32 +58,69 @@ def layout(ax: Any, task: Task) -> None:
         ax.add_patch(patch)
 
 
-def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str) -> None:
-    """Draws `task.layout()` and behaviors [N, 2] over the task's behavior box on the axes `ax`."""
-    layout(ax, task)
-    ax.scatter(behaviors[:, 0], behaviors[:, 1], s=2, c="tab:blue", zorder=3, label=f"behaviors ({len(behaviors)})")
-    ax.set(xlim=(task.behavior_low[0], task.behavior_high[0]), ylim=(task.behavior_low[1], task.behavior_high[1]),
-           aspect="equal", title=title, xlabel="behavior x", ylabel="behavior y")
+def projections(dims: int, pair: tuple[int, int] | None = None) -> list[tuple[int, int]]:
+    """The behavior dimensions (0-based) each repertoire panel shows: [(0, 0)] for one dimension (a strip),
+    [(0, 1)] for two, every pair i < j for more (their pairwise 2-D projections), or only `pair`. Raises
+    ValueError for a pair outside the dimensions."""
+    if pair is not None:
+        i, j = pair
+        if not (0 <= i < dims and 0 <= j < dims and i != j):
+            raise ValueError(f"--pair {i + 1} {j + 1} is invalid: expected two different behavior dimensions of "
+                             f"1 to {dims}")
+        return [(i, j)]
+    if dims <= 2:
+        return [(0, dims - 1)]
+    return [(i, j) for i in range(dims) for j in range(i + 1, dims)]
+
+
+def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str, dims: tuple[int, int] = (0, 1)) -> None:
+    """Draws behaviors [N, d] over the task's behavior box on the axes `ax`: for d = 2 over `task.layout()`; for
+    d = 1 on a strip; for d > 2 their projection on the behavior dimensions `dims` (0-based; the layout, in the
+    first two dimensions, only on (0, 1)), labelled as such."""
+    d, (i, j) = task.behavior_dim, dims
+    low, high = task.behavior_low, task.behavior_high
+    label = f"behaviors ({len(behaviors)})"
+    if d == 1:
+        ax.scatter(behaviors[:, 0], np.zeros(len(behaviors)), s=4, marker="|", c="tab:blue", label=label)
+        ax.set(xlim=(low[0], high[0]), ylim=(-1, 1), yticks=[], title=title, xlabel="behavior 1")
+    else:
+        if (i, j) == (0, 1):
+            layout(ax, task)
+        ax.scatter(behaviors[:, i], behaviors[:, j], s=2, c="tab:blue", zorder=3, label=label)
+        names = ("behavior x", "behavior y") if d == 2 else (f"behavior {i + 1}", f"behavior {j + 1}")
+        ax.set(xlim=(low[i], high[i]), ylim=(low[j], high[j]), title=title if d == 2 else
+               f"{title}\nprojection on behaviors {i + 1}, {j + 1} of {d}", xlabel=names[0], ylabel=names[1])
+        if d == 2 or np.isclose(high[j] - low[j], high[i] - low[i]):
+            ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=6, framealpha=0.7)
 
 
 def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray, path: str, title: str,
-               description: str | None = None) -> str | None:
-    """One run: coverage against evaluations, and the final repertoire over the layout, under `title`."""
+               description: str | None = None, pair: tuple[int, int] | None = None) -> str | None:
+    """One run: coverage against evaluations, and the final repertoire over the layout (for d > 2 each pairwise
+    projection, or `pair` only), under `title`."""
     plt = pyplot()
     if plt is None:
         return None
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4.5))
+    panels = projections(task.behavior_dim, pair)
+    columns = min(4, 1 + len(panels))
+    rows = -(-(1 + len(panels)) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(5 * columns, 4.5 * rows), squeeze=False)
     fig.suptitle(title)
-    ax1.plot(metrics["num_evaluations"], metrics["coverage"])
-    ax1.set(xlabel="evaluations", ylabel="coverage")
-    repertoire(ax2, task, behaviors, "final repertoire")
+    axes = axes.flat
+    axes[0].plot(metrics["num_evaluations"], metrics["coverage"])
+    axes[0].set(xlabel="evaluations", ylabel="coverage")
+    for ax, dims in zip(axes[1:], panels, strict=False):
+        repertoire(ax, task, behaviors, "final repertoire", dims)
+    for ax in axes[1 + len(panels):]:
+        ax.axis("off")
     return save(fig, path, description)
 
 
-def figure2(task: Task, name: str, runs: dict[str, Runs], path: str) -> str | None:
+def figure2(task: Task, name: str, runs: dict[str, Runs], path: str, pair: tuple[int, int] | None = None) -> str | None:
     """Figure 2 for one task: coverage against evaluations (mean over seeds and one std band; x: the mean
-    evaluations at each generation) per algorithm, and seed 0's final repertoire of each over the layout."""
+    evaluations at each generation) per algorithm, and seed 0's final repertoire of each over the layout (for
+    d > 2 its projection on `pair`, by default the first two behavior dimensions)."""
     plt = pyplot()
     if plt is None:
         return None
@@ -95,7 +132,8 @@ def figure2(task: Task, name: str, runs: dict[str, Runs], path: str) -> str | No
     axes[0].set(xlabel="evaluations", ylabel="coverage", title=name)
     axes[0].legend()
     for ax, (alg, r) in zip(axes[1:], runs.items(), strict=True):
-        repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES[alg]}, seed 0")
+        repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES[alg]}, seed 0",
+                   projections(task.behavior_dim, pair)[0])
     return save(fig, path)
 
 

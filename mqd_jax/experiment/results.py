@@ -42,9 +42,9 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax.core import algorithms, registry
+from mqd_jax.core import algorithms, coverage, registry
 from mqd_jax.core.config import Config, upgraded
-from mqd_jax.core.run import State, get_task
+from mqd_jax.core.run import State, coverage_method, coverage_points, get_task
 from mqd_jax.experiment import checkpoint
 from mqd_jax.experiment.folders import (
     Damaged,
@@ -369,6 +369,27 @@ def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
     return {t: current[t] for t in sorted(current, key=task_order)}, stale
 
 
+def coverage_measure(cfg: Config, value: np.ndarray | float | None = None) -> str:
+    """How `cfg`'s coverage is measured, in words: "grid of 256^2 cells" (exact up to the cells), or "Monte Carlo,
+    N reachable points of M" with the standard error of `value` (the mean of the final coverages given)."""
+    if coverage_method(cfg) == coverage.GRID:
+        d = get_task(cfg).behavior_dim
+        return f"grid of {coverage.axis_cells(d, cfg.coverage_resolution)}^{d} cells"
+    reachable = int(np.sum(coverage_points(cfg)[1]))
+    text = f"Monte Carlo, {reachable} reachable points of {cfg.coverage_samples}"
+    if value is not None:
+        text += f", standard error {float(coverage.standard_error(np.mean(value), reachable)):.1e}"
+    return text
+
+
+def normalized_qd_score(cfg: Config, qd_score: np.ndarray) -> np.ndarray:
+    """QD-score / ((quality_high - quality_low) x capacity): 1 = every slot of the repertoire filled at the
+    task's highest quality (pyribs' `norm_qd_score` divides by the archive's cells; a repertoire's are its
+    `capacity` slots)."""
+    low, high = get_task(cfg).quality_range
+    return np.asarray(qd_score) / ((high - low) * cfg.capacity)
+
+
 def _pm(x: np.ndarray, digits: int = 3) -> str:
     return f"{np.mean(x):.{digits}f} +- {np.std(x):.{digits}f}"
 
@@ -406,6 +427,18 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
     lines += [row(t, *cells(t, lambda a, r, t=t: coverage(t, a, r))) for t in runs]
     lines += ["", "Final mean quality", "", *head]
     lines += [row(t, *cells(t, lambda a, r: _pm(r.final("mean_quality")))) for t in runs]
+    lines += ["", "Standard metrics (pyribs' and QDax's definitions), final, mean +- std over seeds: skills in the "
+              "repertoire; QD-score = sum over skills of (quality - the task's lowest quality, `quality_range`); "
+              "normalized = QD-score / ((highest - lowest quality) x capacity); max and mean quality; how coverage "
+              "is measured (blank: runs saved before version 0.12)", "",
+              row("task", "algorithm", "skills", "QD-score", "normalized QD-score", "max quality", "mean quality",
+                  "coverage measured"), "|---" * 8 + "|"]
+    for t, by in runs.items():
+        for a, r in by.items():
+            standard = ([_pm(r.final("qd_score"), 1), _pm(normalized_qd_score(r.cfg, r.final("qd_score")), 4),
+                         _pm(r.final("max_quality"))] if "qd_score" in r.metrics else ["", "", ""])
+            lines.append(row(t, NAMES.get(a, a), _pm(r.final("repertoire_size"), 1), *standard,
+                             _pm(r.final("mean_quality")), coverage_measure(r.cfg, r.final("coverage"))))
     lines += ["", "Evaluations (rollouts) per run; wall time of each batch of seeds (compilation included); "
               "two-sided Mann-Whitney U p-values on final coverage", "",
               row("task", *(f"{NAMES[a]} evaluations" for a in algs), *(f"{NAMES[a]} wall s" for a in algs),
