@@ -206,7 +206,9 @@ def test_folders_of_earlier_versions_resume_tabulate_and_adapt(tmp_path, capsys,
              "features=False", "gate=False"]  # what their "mqd" was (0.11's takes both)
     cli.main(["run", "--algorithm", "mqd", *flags, "--out", str(run), "--resume"])
     assert "resuming at generation 3 of 3" in capsys.readouterr().out  # the whole run, nothing to compute
-    assert folders.read_json(str(run / "metrics.json"), "")["metrics"] == saved["metrics"]
+    now = folders.read_json(str(run / "metrics.json"), "")["metrics"]
+    assert {name: now[name] for name in saved["metrics"]} == saved["metrics"]
+    assert now["qd_score"] == now["max_quality"] == [None] * 3  # 0.12's metrics: not measured before
     cfg, _, states = results.load_states(str(sweep), "obstacle2d")
     assert cfg.options["hidden_size"] == 4 and states.emitter.surrogate.model.steps.shape == (2,)
     assert (np.asarray(states.emitter.surrogate.model.steps) > 0).all()

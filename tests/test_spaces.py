@@ -151,3 +151,21 @@ def test_a_3d_plugin_task_runs_sweeps_adapts_plots_and_says_what_render_needs(tm
     assert "| plugin_tasks:make_waves | M-QD |" in table and "Monte Carlo, 65536 reachable points" in table
     refused(["plot", str(tmp_path / "sweep"), "--pair", "1", "4"],
             "--pair 1 4 is invalid: expected two different behavior dimensions of 1 to 3")
+
+
+def test_a_monte_carlo_run_resumes_from_its_checkpoint_bit_for_bit(tmp_path):
+    from mqd_jax.experiment import checkpoint
+
+    cfg = Config(task=plugin_tasks.make_waves(5), max_generations=4, population_size=8, capacity=32,
+                 archive_capacity=8, t_dist=0.2)
+    whole = run_mqd(jax.random.PRNGKey(0), cfg)
+    path = str(tmp_path / "run.msgpack")
+
+    def interrupt(state, metrics):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # after the first chunk of 2 generations, saved
+        checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, path, every=2, on_chunk=interrupt)
+    resumed = checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, path, every=2)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
+        np.testing.assert_array_equal(a, b)

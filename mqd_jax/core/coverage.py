@@ -35,7 +35,7 @@ from mqd_jax.core import pytree
 GRID, MONTE_CARLO = "grid", "monte carlo"
 MAX_GRID_CELLS = 2**22  # a grid's cells (int32 counts + bool reachable: 20 MiB per run)
 MAX_STAMP_CELLS = 2**24  # cells a generation's stamps touch (skills x window), its temporaries' size
-SAMPLE_CHUNK = 4096  # points compared with a generation's balls at once (Monte Carlo)
+SAMPLE_CHUNK = 4096  # Monte Carlo points come in multiples of this many
 MAX_SAMPLES = 2**22  # Monte Carlo points (24 bytes each with d = 4, 48 with d = 8)
 SAMPLE_SEED = 0
 
@@ -157,15 +157,19 @@ def stamp(cover: Grid | Samples, centres: jax.Array, weights: jax.Array, radius:
 
 
 def _stamp_samples(cover: Samples, centres: jax.Array, weights: jax.Array, radius: jax.Array) -> Samples:
-    m = cover.points.shape[0]
-    chunk = min(m, SAMPLE_CHUNK)
+    # One pass over the points per ball with a weight (most of a generation's have none: a candidate that was
+    # not added, a slot that was not replaced), the balls with weights first.
+    order = jnp.argsort(weights == 0, stable=True)
 
-    def add(points: jax.Array) -> jax.Array:  # [chunk, d] -> [chunk] int32
-        sq = _apart((points[None] - centres[:, None]) ** 2).sum(-1)  # [P, chunk]
-        return jnp.where(sq <= radius**2, weights[:, None], 0).sum(0, dtype=jnp.int32)
+    def add(i: jax.Array, counts: jax.Array) -> jax.Array:
+        ball = order[i]
+        terms = _apart((cover.points - centres[ball]) ** 2)
+        sq = terms[:, 0]
+        for axis in range(1, terms.shape[1]):
+            sq = sq + terms[:, axis]
+        return counts + jnp.where(sq <= radius**2, weights[ball], 0)
 
-    added = jax.lax.map(add, cover.points.reshape(m // chunk, chunk, -1)).reshape(m)
-    return cover.replace(counts=cover.counts + added)
+    return cover.replace(counts=jax.lax.fori_loop(0, (weights != 0).sum(), add, cover.counts))
 
 
 def fraction(cover: Grid | Samples) -> jax.Array:

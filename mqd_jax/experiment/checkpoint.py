@@ -37,7 +37,7 @@ from mqd_jax.core import diagnostics, pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params, upgraded
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import State, check_state, get_task, init, run_generations
+from mqd_jax.core.run import State, check_state, get_task, init, metric_dtypes, run_generations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
@@ -223,7 +223,13 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
         if want.shape != np.shape(got) or want.dtype != np.asarray(got).dtype:
             raise Refused(path, f"an array of shape {np.shape(got)} where {want.shape} was expected")
     state = jax.tree.map(lambda want, got: np.asarray(got, want.dtype), template, state)
-    return state, dict(payload["metrics"])
+    metrics = dict(payload["metrics"])
+    if metrics:  # metrics a later version added (0.12: max_quality, qd_score): NaN for the generations before
+        done = np.shape(metrics["coverage"])
+        for name, dtype in metric_dtypes(cfg).items():
+            if name not in metrics and jnp.issubdtype(dtype, jnp.floating):
+                metrics[name] = np.full(done, np.nan, np.float32)
+    return state, metrics
 
 
 def compile_chunk(state: State, cfg: Config, params: Params, every: int) -> Callable[..., tuple[State, Metrics]]:
