@@ -76,7 +76,8 @@ def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
     assert "--max-generations MAX_GENERATIONS, --generations MAX_GENERATIONS Config.max_generations (default: 100)" \
         in text
     assert "(default: 0)" in text and "(default: results/run)" in text and "(default: 25)" in text
-    assert "object2d, obstacle2d, place, push_cube, push_sphere" in text and "package.module:factory" in text
+    tasks = "hexapod_omni, hexapod_uni, object2d, obstacle2d, place, place3d, push_cube, push_sphere"
+    assert tasks in text and "package.module:factory" in text
     with pytest.raises(SystemExit):
         cli.main(["sweep", "--help"])
     text = " ".join(capsys.readouterr().out.split())

@@ -35,7 +35,7 @@ from mqd_jax.core.task import Task, check_task
 def check_params(params: Params, cfg: Config) -> None:
     """Raises ValueError naming the parameter if a concrete value of `params` is NaN, infinite or out of range.
 
-    The engine's `t_dist` (> 0 and <= `cfg.t_dist`: the coverage grid stamps disks of at most the config's
+    The engine's `t_dist` (> 0 and <= `cfg.t_dist`: the coverage grid stamps balls of at most the config's
     radius) and the emitter's own, checked by the emitter (`Emitter.check_params`); every element of batched
     params too. Traced values (inside a user's `jit` or `vmap`) cannot be read and are not checked.
     """
@@ -78,7 +78,7 @@ class Config:
         run compare, hash and save the same.
       max_generations, population_size: the run's length and candidates per generation.
       k: neighbours in the novelty score (and in M-QD's predicted novelty).
-      t_dist: insertion distance threshold and coverage disk radius (the default of `Params.t_dist`).
+      t_dist: insertion distance threshold and coverage ball radius (the default of `Params.t_dist`).
       capacity, archive_capacity: repertoire and rejected-archive sizes (fixed-size masked arrays).
       neighbour_slack: neighbour-list length kept per skill beyond k (longer lists are recomputed less often
         when neighbours are replaced; changes no result).
@@ -154,16 +154,21 @@ class Config:
 
     @classmethod
     def paper_2d(cls, **overrides: Any) -> Config:
-        """Table II, 2D column (the 2D Obstacle task unless `task` is given)."""
+        """Table II, 2D column (the 2D Obstacle task unless `task` is given; its `default_t_dist` if it has one)."""
         return cls._column("2d", {}, overrides)
 
     @classmethod
     def paper_robot(cls, **overrides: Any) -> Config:
-        """Table II, robotic column: 100 generations, 64 hidden neurons (for the presets with a model)."""
+        """Table II, robotic column: 100 generations, 64 hidden neurons (for the presets with a model); the task's
+        `default_t_dist` if it has one."""
         return cls._column("robot", {"max_generations": 100}, overrides)
 
     @classmethod
     def _column(cls, column: str, base: dict[str, Any], overrides: dict[str, Any]) -> Config:
+        task = overrides.get("task", cls.task)
+        made = registry.make(task) if isinstance(task, str) and registry.is_task(task) else task
+        if isinstance(made, Task) and made.default_t_dist is not None:  # where Table II's does not fit its space
+            base = {**base, "t_dist": made.default_t_dist}
         algorithm = overrides.get("algorithm", cls.algorithm)
         named = isinstance(algorithm, str) and algorithm in algorithms.names()
         table = algorithms.table_ii(algorithm, column) if named else {}
@@ -172,12 +177,9 @@ class Config:
 
     @classmethod
     def paper(cls, task: str, **overrides: Any) -> Config:
-        """Table II's column for `task`: the robotic one for the robot tasks, else the 2D one; the task's
-        `default_t_dist` where it declares one and `t_dist` is not given."""
-        made = registry.make(task) if isinstance(task, str) else task
-        scale = {} if made.default_t_dist is None else {"t_dist": made.default_t_dist}
-        return (cls.paper_robot if made.table_ii_column == "robot" else cls.paper_2d)(task=task, **{**scale,
-                                                                                                  **overrides})
+        """Table II's column for `task`: the robotic one for the robot tasks, else the 2D one."""
+        column = (registry.make(task) if isinstance(task, str) else task).table_ii_column
+        return (cls.paper_robot if column == "robot" else cls.paper_2d)(task=task, **overrides)
 
     @property
     def task_name(self) -> str:

@@ -23,7 +23,7 @@ class Params:
     """Traced parameters of a run.
 
     Attributes:
-      t_dist: float32 scalar (or [R] in a sweep): the insertion distance threshold and coverage disk radius.
+      t_dist: float32 scalar (or [R] in a sweep): the insertion distance threshold and coverage ball radius.
       emitter: the emitter's traced parameters (`Emitter.default_params()`; () for one without).
     """
 

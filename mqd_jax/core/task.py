@@ -45,7 +45,7 @@ import numpy as np
 
 @dataclasses.dataclass(frozen=True)
 class Region:
-    """A part of a task's scene in behavior coordinates, drawn under the behaviors in figures.
+    """A part of a task's scene in behavior coordinates (the first two), drawn under the behaviors in figures.
 
     Attributes:
       label: legend text ("obstacle", "table", ...).
@@ -76,8 +76,9 @@ class Task:
         (a class attribute; default none).
       table_ii_column: "2d" or "robot": the paper's Table II column of
         defaults that `Config.paper` gives this task.
-      default_t_dist: the `t_dist` `Config.paper` gives this task when none is given, for a behavior space whose
-        scale is not Table II's (None: Table II's 0.02); in behavior units.
+      default_t_dist: the `t_dist` Table II's columns (`Config.paper`, `paper_2d`, `paper_robot`; the command
+        line's presets) give this task when none is given, for a behavior space whose scale is not Table II's
+        (None: Table II's 0.02); in behavior units.
       paper_seeds: runs per algorithm in the paper's experiments (`mqd sweep`'s default).
       paper_coverage: the paper's Table I, {preset: (mean, std) final coverage};
         empty for tasks the paper does not have.

@@ -382,16 +382,17 @@ def _adapt(args: argparse.Namespace) -> None:
 
 def _plot(out: str, pair: tuple[int, int] | None = None) -> None:
     """Tables (markdown) and figures of everything in the results folder `out` (call holding its lock); `pair`:
-    the two behavior dimensions (0-based) Figure 2 shows of a task with more than two."""
+    the two behavior dimensions (0-based) Figure 2 shows of each task that has them (refused if none has)."""
     runs = results.load_runs(out)
-    if pair is not None:  # checked against every task before anything is written
-        for by_alg in runs.values():
-            plots.projections(get_task(next(iter(by_alg.values())).cfg).behavior_dim, pair)
+    dims = {task: get_task(next(iter(by_alg.values())).cfg).behavior_dim for task, by_alg in runs.items()}
+    if pair is not None and not any(max(pair) < d for d in dims.values()):  # before anything is written
+        plots.projections(max(dims.values()), pair)  # raises, naming the dimensions
     results.remove_derived(out)
     results.write_markdown(results.tables(runs), os.path.join(out, "table1.md"))
     for task, by_alg in runs.items():
         plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg,
-                      os.path.join(out, f"fig2_{results.file_name(task)}.png"), pair)
+                      os.path.join(out, f"fig2_{results.file_name(task)}.png"),
+                      pair if pair is not None and max(pair) < dims[task] else None)
     try:
         found, stale = results.adaptation(out)
     except folders.Damaged as e:
@@ -511,8 +512,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     pl = sub.add_parser("plot", help="tables and figures of a results folder")
     pl.add_argument("dir")
     pl.add_argument("--pair", type=int, nargs=2, metavar=("I", "J"), default=None,
-                    help="for tasks with more than two behavior dimensions, Figure 2 shows behaviors I and J "
-                         "(1-based; default: 1 and 2)")
+                    help="Figure 2 shows behaviors I and J (1-based) of each task that has them (default: 1 and 2)")
 
     rd = sub.add_parser("render", help="watch a skill of a `mqd run` folder: an animated GIF")
     rd.add_argument("dir", help="a results folder of `mqd run`")

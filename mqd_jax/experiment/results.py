@@ -435,10 +435,12 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
                   "coverage measured"), "|---" * 8 + "|"]
     for t, by in runs.items():
         for a, r in by.items():
-            standard = ([_pm(r.final("qd_score"), 1), _pm(normalized_qd_score(r.cfg, r.final("qd_score")), 4),
-                         _pm(r.final("max_quality"))] if "qd_score" in r.metrics else ["", "", ""])
-            lines.append(row(t, NAMES.get(a, a), _pm(r.final("repertoire_size"), 1), *standard,
-                             _pm(r.final("mean_quality")), coverage_measure(r.cfg, r.final("coverage"))))
+            final = lambda name, digits=3, r=r: _pm(r.final(name), digits) if name in r.metrics else ""  # noqa: E731
+            normalized = (_pm(normalized_qd_score(r.cfg, r.final("qd_score")), 4) if "qd_score" in r.metrics
+                          else "")
+            lines.append(row(t, NAMES.get(a, a), final("repertoire_size", 1), final("qd_score", 1), normalized,
+                             final("max_quality"), final("mean_quality"),
+                             coverage_measure(r.cfg, r.final("coverage"))))
     lines += ["", "Evaluations (rollouts) per run; wall time of each batch of seeds (compilation included); "
               "two-sided Mann-Whitney U p-values on final coverage", "",
               row("task", *(f"{NAMES[a]} evaluations" for a in algs), *(f"{NAMES[a]} wall s" for a in algs),
