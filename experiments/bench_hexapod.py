@@ -91,9 +91,9 @@ def main() -> None:
     report.write(datasheet(), args.datasheet)
     lines = [f"Command: `python experiments/bench_hexapod.py --tasks {' '.join(args.tasks)}"
              + (f" --grow {args.grow}" if args.grow else "") + "`", "", f"Machine: {report.machine()}", "",
-             "ms of `mujoco.rollout` alone on one generation's controls (C MuJoCo, Table II's population) and of one "
-             "jitted generation (C backend) from repertoires grown for the task's Table II generations, best of 5 "
-             "rounds of medians; ratios to the rollouts alone.", "",
+             "ms of `mujoco.rollout` alone on one generation's controls (C MuJoCo, Table II's population; the median "
+             f"of {args.calls} calls) and of one jitted generation (C backend) from repertoires grown for the task's "
+             "Table II generations (the best of 5 rounds of medians); ratios to the rollouts alone.", "",
              "| task | population | rollout alone ms | QD ms/gen | x rollout | M-QD ms/gen | x rollout |",
              "|---|---|---|---|---|---|---|"]
     for task in args.tasks:

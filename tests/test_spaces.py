@@ -37,14 +37,12 @@ def _samples(points: np.ndarray, centres: np.ndarray, r: float) -> float:
 def test_one_dimension_matches_the_exact_union_of_intervals():
     rng = np.random.default_rng(3)
     centres, r = rng.random((12, 1)), 0.03
-    # Exact: merge the intervals, clipped to [0, 1].
-    spans = sorted((max(c - r, 0.0), min(c + r, 1.0)) for c in centres[:, 0])
-    length, (lo, hi) = 0.0, spans[0]
-    for a, b in spans[1:]:
-        if a > hi:
-            length, lo = length + hi - lo, a
-        hi = max(hi, b)
-    exact = length + hi - lo
+    # Exact: sweep the intervals' ends (clipped to [0, 1]), adding the lengths where any interval is open.
+    ends = sorted([(max(c - r, 0.0), 1) for c in centres[:, 0]] + [(min(c + r, 1.0), -1) for c in centres[:, 0]])
+    exact, depth, last = 0.0, 0, 0.0
+    for x, step in ends:
+        exact += (x - last) if depth > 0 else 0.0
+        depth, last = depth + step, x
     assert coverage.method(np.zeros(1), np.ones(1), 256, r, 200) == coverage.GRID
     assert coverage.axis_cells(1, 256) == 256**2  # in one dimension a grid has as many cells as in two
     assert _grid(1, 256**2, centres, r) == pytest.approx(exact, abs=1e-4)
