@@ -92,8 +92,10 @@ def test_a_stamp_window_over_the_bound_falls_back_to_monte_carlo():
     # 2-D at the default resolution: a grid; balls so large that a generation's stamps would pass the bound: not.
     assert coverage.method(np.zeros(2), np.ones(2), 256, 0.02, 200) == coverage.GRID
     assert coverage.method(np.zeros(2), np.ones(2), 256, 1.0, 200) == coverage.MONTE_CARLO
-    with pytest.raises(ValueError, match="coverage_samples=1000 is invalid: expected a multiple of 4096"):
+    with pytest.raises(ValueError, match="coverage_samples=1000 is invalid: expected an int from 1024 to 1048576"):
         Config(coverage_samples=1000)
+    with pytest.raises(ValueError, match="coverage_samples=2097152 is invalid"):  # 2^21: past the memory bound
+        Config(coverage_samples=2**21)
 
 
 @pytest.mark.parametrize("dims", [1, 3, 5, 8])
@@ -167,3 +169,19 @@ def test_a_monte_carlo_run_resumes_from_its_checkpoint_bit_for_bit(tmp_path):
     resumed = checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, path, every=2)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_task_declares_the_t_dist_of_its_behavior_space_and_a_given_one_wins():
+    import dataclasses
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class Coarse(plugin_tasks.Waves):
+        default_t_dist = 0.2
+
+    coarse = Coarse(*(getattr(plugin_tasks.make_waves(4), f) for f in ("action_low", "action_high", "behavior_low",
+                                                                       "behavior_high")))
+    assert Config.paper_2d(task=coarse).t_dist == Config.paper_robot(task=coarse).t_dist == 0.2
+    assert Config.paper(coarse, t_dist=0.05).t_dist == 0.05 and Config(task=coarse).t_dist == Config.t_dist
+    bad = type("Bad", (Coarse,), {"default_t_dist": -1})
+    with pytest.raises(ValueError, match="default_t_dist=-1 is invalid: None or a finite float > 0"):
+        Config(task=bad(coarse.action_low, coarse.action_high, coarse.behavior_low, coarse.behavior_high))

@@ -86,7 +86,7 @@ class Config:
         cells as in two).
       coverage_samples: points of the Monte Carlo coverage estimate, used where the grid does not fit its memory
         bound (`mqd_jax.core.coverage.method`: behavior spaces of 4 or more dimensions, and 3 at the default
-        resolution); a multiple of 4096, at most 2^22. Its standard error is at most 0.5 / sqrt(points).
+        resolution); 2^10 to 2^20. Its standard error is at most 0.5 / sqrt(points).
     """
 
     task: str | Task = "obstacle2d"
@@ -120,9 +120,9 @@ class Config:
                          ("archive_capacity", 1), ("neighbour_slack", 0), ("coverage_resolution", 8)):
             v = getattr(self, name)
             _check(is_int(v) and v >= lo, name, v, f"an int >= {lo}")
-        _check(is_int(self.coverage_samples) and 0 < self.coverage_samples <= coverage.MAX_SAMPLES
-               and self.coverage_samples % coverage.SAMPLE_CHUNK == 0, "coverage_samples", self.coverage_samples,
-               f"a multiple of {coverage.SAMPLE_CHUNK} up to {coverage.MAX_SAMPLES}")
+        low, high = coverage.MIN_SAMPLES, coverage.MAX_SAMPLES
+        _check(is_int(self.coverage_samples) and low <= self.coverage_samples <= high, "coverage_samples",
+               self.coverage_samples, f"an int from {low} to {high}")
         _check(is_real(self.t_dist) and self.t_dist > 0, "t_dist", self.t_dist, "a finite float > 0")
         _check(self.population_size <= self.capacity, "population_size", self.population_size,
                f"an int <= capacity ({self.capacity})")
@@ -165,10 +165,11 @@ class Config:
 
     @classmethod
     def _column(cls, column: str, base: dict[str, Any], overrides: dict[str, Any]) -> Config:
-        task = overrides.get("task", cls.task)
-        made = registry.make(task) if isinstance(task, str) and registry.is_task(task) else task
-        if isinstance(made, Task) and made.default_t_dist is not None:  # where Table II's does not fit its space
-            base = {**base, "t_dist": made.default_t_dist}
+        task = overrides.get("task")  # the default task (2D Obstacle) has Table II's t_dist: not made here
+        if "t_dist" not in overrides and task is not None:
+            made = registry.make(task) if isinstance(task, str) and registry.is_task(task) else task
+            if isinstance(made, Task) and made.default_t_dist is not None:  # where Table II's does not fit
+                base = {**base, "t_dist": made.default_t_dist}
         algorithm = overrides.get("algorithm", cls.algorithm)
         named = isinstance(algorithm, str) and algorithm in algorithms.names()
         table = algorithms.table_ii(algorithm, column) if named else {}

@@ -35,8 +35,7 @@ from mqd_jax.core import pytree
 GRID, MONTE_CARLO = "grid", "monte carlo"
 MAX_GRID_CELLS = 2**22  # a grid's cells (int32 counts + bool reachable: 20 MiB per run)
 MAX_STAMP_CELLS = 2**24  # cells a generation's stamps touch (skills x window), its temporaries' size
-SAMPLE_CHUNK = 4096  # Monte Carlo points come in multiples of this many
-MAX_SAMPLES = 2**22  # Monte Carlo points (24 bytes each with d = 4, 48 with d = 8)
+MIN_SAMPLES, MAX_SAMPLES = 2**10, 2**20  # Monte Carlo points (at most 36 MiB with d = 8)
 SAMPLE_SEED = 0
 
 
@@ -119,8 +118,7 @@ def empty(low: np.ndarray, high: np.ndarray, reachable: np.ndarray, max_radius: 
 
 
 def empty_samples(points: np.ndarray, reachable: np.ndarray) -> Samples:
-    """Samples with no balls at `points` [M, d] whose reachability is `reachable` [M]; M at most `SAMPLE_CHUNK` or
-    a multiple of it."""
+    """Samples with no balls at `points` [M, d] whose reachability is `reachable` [M]."""
     return Samples(counts=jnp.zeros(len(points), jnp.int32), reachable=jnp.asarray(reachable, bool),
                    points=jnp.asarray(points, jnp.float32))
 
