@@ -51,7 +51,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import rollout
 
 from envs import physics
 from mqd_jax.core.task import Task
@@ -158,18 +157,9 @@ class Hexapod(Task):
         model = load()
         c = self._rollout if isinstance(self._rollout, physics.CRollout) else physics.CRollout(model, start_data(model))
         ctrl = np.asarray(self.rollout_controls(jnp.asarray(action, jnp.float32)[None]), np.float64)
-        state, _ = rollout.rollout(c.model, c.datas[:1], c.initial_state[None], ctrl)
-        data, camera = mujoco.MjData(model), mujoco.MjvCamera()
+        camera = mujoco.MjvCamera()
         camera.distance, camera.azimuth, camera.elevation = 1.2, 210.0, -30.0
-        out = []
-        with mujoco.Renderer(model, height, width) as renderer:
-            for t in range(0, state.shape[1], every):
-                mujoco.mj_setState(model, data, state[0, t], mujoco.mjtState.mjSTATE_FULLPHYSICS)
-                mujoco.mj_forward(model, data)
-                camera.lookat[:] = data.qpos[:3]
-                renderer.update_scene(data, camera)
-                out.append(renderer.render())
-        return np.stack(out)
+        return physics.frames(c, ctrl, width, height, every, camera, follow=True)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -192,7 +182,6 @@ class Uni(Hexapod):
 
     quality_range = (-2.0, 2.0)  # m in 3 s; the tripod gait walks 1.3
     default_t_dist = 0.15  # contact fraction: a repertoire of 100 x 100 rollouts fits the default capacity
-
 
     def outcome(self, sensors: jax.Array) -> tuple[jax.Array, jax.Array]:
         feet_z = sensors[..., FEET][..., 2::3]  # [B, H, 6]

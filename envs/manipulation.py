@@ -41,7 +41,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
-from mujoco import rollout
 
 from envs import kuka, physics
 from mqd_jax.core.task import Region, Task
@@ -233,20 +232,11 @@ class Manipulation(Task):
         c = (self._rollout if isinstance(self._rollout, physics.CRollout)
              else physics.CRollout(model, kuka.start_data(model, self._q_start)))
         ctrl = np.asarray(self.rollout_controls(jnp.asarray(action, jnp.float32)[None]), np.float64)
-        state, _ = rollout.rollout(c.model, c.datas[:1], c.initial_state[None], ctrl)
         model.vis.headlight.ambient[:] = 0.45
         model.vis.headlight.diffuse[:] = 0.6
-        data = mujoco.MjData(model)
         camera = mujoco.MjvCamera()
         camera.lookat[:], camera.distance, camera.azimuth, camera.elevation = (0.6, 0.0, 0.1), 1.6, 150.0, -30.0
-        out = []
-        with mujoco.Renderer(model, height, width) as renderer:
-            for t in range(0, state.shape[1], every):
-                mujoco.mj_setState(model, data, state[0, t], mujoco.mjtState.mjSTATE_FULLPHYSICS)
-                mujoco.mj_forward(model, data)
-                renderer.update_scene(data, camera)
-                out.append(renderer.render())
-        return np.stack(out)
+        return physics.frames(c, ctrl, width, height, every, camera)
 
     @property
     def paper_coverage(self) -> dict[str, tuple[float, float]]:

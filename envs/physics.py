@@ -83,6 +83,26 @@ def simulate(rollouts: CRollout | MjxRollout, model: mujoco.MjModel, ctrl: jax.A
     return jax.pure_callback(rollouts, shapes, ctrl, mask, vmap_method="expand_dims")
 
 
+def frames(rollouts: CRollout, ctrl: np.ndarray, width: int, height: int, every: int, camera: mujoco.MjvCamera,
+           follow: bool = False) -> np.ndarray:
+    """Frames [F, height, width, 3] uint8 of one C MuJoCo rollout of ctrl [1, H, nu], a frame every `every` steps,
+    seen by `camera` (looking at the first body's position at each frame with `follow`). Needs an OpenGL context
+    (MUJOCO_GL=egl offscreen)."""
+    model = rollouts.model
+    state, _ = rollout.rollout(model, rollouts.datas[:1], rollouts.initial_state[None], ctrl)
+    data = mujoco.MjData(model)
+    out = []
+    with mujoco.Renderer(model, height, width) as renderer:
+        for t in range(0, state.shape[1], every):
+            mujoco.mj_setState(model, data, state[0, t], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+            mujoco.mj_forward(model, data)
+            if follow:
+                camera.lookat[:] = data.qpos[:3]
+            renderer.update_scene(data, camera)
+            out.append(renderer.render())
+    return np.stack(out)
+
+
 class CRollout:
     """C MuJoCo rollouts of a batch of control sequences (the actuators' targets) from a start state `data` of
     `model`."""

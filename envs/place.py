@@ -85,13 +85,16 @@ class Place(Manipulation):
         return sensors[:, -1, 3:5], -jnp.maximum(cube[:, 2] - sensors[:, -1, 5], 0.0), held
 
 
+def _action_box(t_max: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    h = math.pi / 2
+    return ((*kuka.VIA_LOW, Z_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS,
+            (*kuka.VIA_HIGH, Z_HIGH, h, t_max) * VIA_POINTS)
+
+
 def make(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION_STEPS,
          settle: int = RELEASE_DELAY + SETTLE) -> Place:
     """The place task; `t_max`, `motion_steps` and `settle` shorten the horizon for quick checks."""
-    h = math.pi / 2
-    low = (*kuka.VIA_LOW, Z_LOW, -h, min(T_MIN, t_max)) * VIA_POINTS
-    high = (*kuka.VIA_HIGH, Z_HIGH, h, t_max) * VIA_POINTS
-    return Place(low, high, kuka.TABLE_LOW, kuka.TABLE_HIGH, scene="place", backend=backend,
+    return Place(*_action_box(t_max), kuka.TABLE_LOW, kuka.TABLE_HIGH, scene="place", backend=backend,
                  motion_steps=motion_steps, settle=settle)
 
 
@@ -120,8 +123,7 @@ def _cube_half_size() -> float:
 def make_3d(backend: str = "auto", t_max: float = T_MAX, motion_steps: int = MOTION_STEPS,
             settle: int = RELEASE_DELAY + SETTLE) -> Place3D:
     """place3d: Place with the cube's final 3-D position as its behavior; options as `make`'s."""
-    flat = make(backend, t_max, motion_steps, settle)
     top = float(max(box[4] for _, box in _surfaces("place")))
-    return Place3D(flat.action_low, flat.action_high, (*kuka.TABLE_LOW, 0.0),
+    return Place3D(*_action_box(t_max), (*kuka.TABLE_LOW, 0.0),
                    (*kuka.TABLE_HIGH, top + 4 * _cube_half_size()), scene="place", backend=backend,
                    motion_steps=motion_steps, settle=settle)

@@ -123,8 +123,20 @@ def empty_samples(points: np.ndarray, reachable: np.ndarray) -> Samples:
                    points=jnp.asarray(points, jnp.float32))
 
 
+# Products and sums are kept apart (no fused multiply-add, which a compiler uses in one program and not another):
+# a point on a ball's border is inside or not the same way in every program (e.g. sharded and whole runs).
 def _apart(x: jax.Array) -> jax.Array:
     return jax.lax.optimization_barrier(x)
+
+
+def _within(points: jax.Array, centres: jax.Array, radius: jax.Array) -> jax.Array:
+    """[...] whether points [..., d] lie within `radius` of centres [..., d] (broadcast), the squares summed axis
+    by axis in order."""
+    terms = _apart((points - centres) ** 2)
+    sq = terms[..., 0]
+    for axis in range(1, terms.shape[-1]):
+        sq = sq + terms[..., axis]
+    return sq <= radius**2
 
 
 def stamp(cover: Grid | Samples, centres: jax.Array, weights: jax.Array, radius: jax.Array) -> Grid | Samples:
@@ -137,14 +149,9 @@ def stamp(cover: Grid | Samples, centres: jax.Array, weights: jax.Array, radius:
     window = np.asarray(list(itertools.product(range(-cover.reach, cover.reach + 1), repeat=d)), np.int32)
     base = jnp.floor((centres - low) / size).astype(jnp.int32)  # [P, d]
     index = base[:, None, :] + window[None]  # [P, W, d]
-    # Products and sums kept apart (no fused multiply-add, which a compiler uses in one program and not another):
-    # a cell on a ball's border is inside or not the same way in every program (e.g. sharded and whole runs).
     cell = low + _apart((index + 0.5) * size)
-    terms = _apart((cell - centres[:, None]) ** 2)
-    sq = terms[..., 0]
-    for axis in range(1, d):
-        sq = sq + terms[..., axis]
-    inside = (sq <= radius**2) & ((index >= 0) & (index < g)).all(axis=-1) & (weights[:, None] != 0)
+    inside = _within(cell, centres[:, None], radius) & ((index >= 0) & (index < g)).all(axis=-1)
+    inside &= weights[:, None] != 0
     flat = jnp.zeros(inside.shape, jnp.int32)
     for axis in range(d):
         flat = flat * g + index[..., axis]
@@ -161,11 +168,7 @@ def _stamp_samples(cover: Samples, centres: jax.Array, weights: jax.Array, radiu
 
     def add(i: jax.Array, counts: jax.Array) -> jax.Array:
         ball = order[i]
-        terms = _apart((cover.points - centres[ball]) ** 2)
-        sq = terms[:, 0]
-        for axis in range(1, terms.shape[1]):
-            sq = sq + terms[:, axis]
-        return counts + jnp.where(sq <= radius**2, weights[ball], 0)
+        return counts + jnp.where(_within(cover.points, centres[ball], radius), weights[ball], 0)
 
     return cover.replace(counts=jax.lax.fori_loop(0, (weights != 0).sum(), add, cover.counts))
 

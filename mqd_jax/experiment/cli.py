@@ -276,7 +276,7 @@ def _run(args: argparse.Namespace) -> None:
         figure = plots.run_figure(get_task(cfg), metrics, rep.behaviors[:n], os.path.join(args.out, "run.png"),
                                   title, description)
     written = [f for f in RUN_FILES if f != "run.png" or figure]
-    print(f"done: coverage {metrics['coverage'][-1]:.3f} ({results.coverage_measure(cfg, metrics['coverage'][-1])}), "
+    print(f"done: coverage {metrics['coverage'][-1]:.3f} ({meta['coverage_measured']}), "
           f"QD-score {metrics['qd_score'][-1]:.2f}, max quality {metrics['max_quality'][-1]:.3f}, "
           f"mean quality {metrics['mean_quality'][-1]:.3f}, {n} skills, "
           f"{int(metrics['num_evaluations'][-1])} evaluations, "

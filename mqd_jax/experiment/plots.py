@@ -96,13 +96,13 @@ def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str, dims: tup
 
 
 def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray, path: str, title: str,
-               description: str | None = None, pair: tuple[int, int] | None = None) -> str | None:
+               description: str | None = None) -> str | None:
     """One run: coverage against evaluations, and the final repertoire over the layout (for d > 2 each pairwise
-    projection, or `pair` only), under `title`."""
+    projection), under `title`."""
     plt = pyplot()
     if plt is None:
         return None
-    panels = projections(task.behavior_dim, pair)
+    panels = projections(task.behavior_dim)
     columns = min(4, 1 + len(panels))
     rows = -(-(1 + len(panels)) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(5 * columns, 4.5 * rows), squeeze=False)
