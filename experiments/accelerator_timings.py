@@ -1,15 +1,23 @@
-"""The search's own timings on whatever JAX device this process has: one table, the same command everywhere.
+"""The search's own timings on whatever JAX device this process has: the same command everywhere.
 
-    python experiments/accelerator_timings.py [--seeds 25] [--out results/accelerator_timings.md]
+    python experiments/accelerator_timings.py [--populations 100 1024 4096 16384] [--algorithms qd mqd]
+        [--seeds 25] [--robot-batches 1024 4096 16384] [--robot-backends mujoco mjx] [--out results/timings.md]
 
-Rows (2D Obstacle and 2D Object, the paper's 2D settings, 250 generations):
-ms per generation of QD and M-QD (one run; median of 3 after compiling), and
-the wall time of a `--seeds` sweep of each preset (`run_batch`, as `mqd sweep`
-runs it: first call with compilation, and a second call). The header names the
-host and the JAX device. With `experiments/bench_physics.py` (robot physics
-per backend and batch) and `experiments/profile_generation.py` (where a
-generation's time goes) it makes the CPU/GPU comparison of docs/benchmarks.md;
-the whole Table I is `time mqd sweep --out results/paper`.
+Three tables, each row written to `--out` as soon as it is measured:
+
+1. Population (2D Obstacle, Table II's 2D settings, capacity max(4096, population)): ms per generation of
+   each `--algorithms` preset, from a state grown `--grow` generations (a chunk of `--generations`
+   generations, one compiled `lax.scan`, median of `--repeats` calls after compiling), its ratio to the
+   smallest population's, the mean rounds of the parallel insertion, and the time of each named stage
+   jitted alone on that state (`ask`: variation and the model's acquisition; `rollouts`; `insert`: the
+   insertion rule, neighbour lists and novelty; `archive + coverage`; `update`: the emitter's, M-QD's
+   training). Stages alone do not add up exactly to the fused generation.
+2. A sweep: `--seeds` vmapped "mqd" runs of 2D Obstacle, 250 generations (`run_batch`): first call (with
+   compiling) and a second call.
+3. Robot (`--robot-task`, random actions): env-steps per second of each backend's `evaluate` per batch
+   (`experiments/bench_physics.py`'s table).
+
+The header names the host and the JAX device. docs/benchmarks.md holds the figures per machine.
 """
 
 from __future__ import annotations
@@ -17,21 +25,65 @@ from __future__ import annotations
 import argparse
 import time
 
+import bench_physics
 import jax
+import jax.numpy as jnp
+import numpy as np
 import report
 
-from mqd_jax import Config, run_mqd
+from mqd_jax import Config, init
+from mqd_jax.core import repertoire
+from mqd_jax.core.emitter import Evaluated
+from mqd_jax.core.run import (
+    _archive,
+    _cover,
+    _update_emitter,
+    _usable,
+    ask,
+    get_task,
+    run_generations,
+)
 from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 
-def ms_per_generation(cfg: Config) -> float:
-    """ms per generation of `run_mqd` on `cfg`: compiled by a first call, then the median of 3 runs."""
-    key = jax.random.PRNGKey(0)
-    return report.median_ms(lambda: run_mqd(key, cfg), 3) / cfg.max_generations
+def population_row(algorithm: str, population: int, args: argparse.Namespace) -> dict[str, float]:
+    """{"generation": ms, "rounds": mean insertion rounds, stage: ms} of `algorithm` at `population`."""
+    cfg = Config.paper_2d(task="obstacle2d", algorithm=algorithm, population_size=population,
+                          capacity=max(4096, population), archive_capacity=max(4096, population),
+                          max_generations=args.grow + args.generations)
+    params, task = cfg.params(), get_task(cfg)
+    chunk = jax.jit(run_generations, static_argnums=(1, 3))
+    state, _ = chunk(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
+    state = jax.block_until_ready(state)
+    _, metrics = chunk(state, cfg, params, args.generations)
+    found = {"generation": report.median_ms(lambda: chunk(state, cfg, params, args.generations), args.repeats)
+             / args.generations, "rounds": float(np.mean(np.asarray(metrics["insertion_rounds"])))}
+    candidates = ask(state, cfg, params)
+    b, q, ok, aux = task.evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
+    b, q, usable = _usable(candidates, b, q, ok)
+    rep, ins = repertoire.insert(state.repertoire, candidates.actions, b, q, usable, params.t_dist, cfg.k,
+                                 repertoire.NUM_NEAR, chunk=32)
+    evaluated = Evaluated(b, q, usable, ins.status, jnp.where(usable[:, None], aux, 0.0).astype(jnp.float32))
+    stages = {
+        "ask": jax.jit(lambda s: ask(s, cfg, params)),
+        "rollouts": jax.jit(lambda s: task.evaluate_with_auxiliary(candidates.actions, candidates.key,
+                                                                   candidates.rollout)),
+        "insert": jax.jit(lambda s: repertoire.insert(s.repertoire, candidates.actions, b, q, usable, params.t_dist,
+                                                      cfg.k, repertoire.NUM_NEAR, chunk=32)),
+        "archive + coverage": jax.jit(lambda s: (
+            _archive(s.archive, s.repertoire, candidates.actions, evaluated, ins),
+            _cover(s.coverage, s.repertoire, evaluated, ins, params.t_dist))),
+        "update": jax.jit(lambda s: _update_emitter(jax.random.PRNGKey(1), s, candidates, evaluated, rep, cfg,
+                                                    params)),
+    }
+    for name, fn in stages.items():
+        found[name] = report.median_ms(lambda f=fn: f(state), args.repeats)
+    return found
 
 
-def _sweep_seconds(cfg: Config, seeds: int) -> tuple[float, float]:
-    """(first call with compilation, second call) wall seconds of a sweep of `seeds` runs."""
+def sweep_seconds(seeds: int) -> tuple[float, float]:
+    """(first call with compiling, second call) wall seconds of `seeds` vmapped "mqd" runs of 2D Obstacle."""
+    cfg = Config.paper_2d(task="obstacle2d", algorithm="mqd")
     out = []
     for _ in range(2):
         start = time.perf_counter()
@@ -42,21 +94,41 @@ def _sweep_seconds(cfg: Config, seeds: int) -> tuple[float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=25)
+    parser.add_argument("--populations", type=int, nargs="+", default=[100, 1024, 4096, 16384])
+    parser.add_argument("--algorithms", nargs="+", default=["qd", "mqd"])
+    parser.add_argument("--grow", type=int, default=20, help="generations run before timing")
+    parser.add_argument("--generations", type=int, default=5, help="generations of the timed chunk")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=25, help="the sweep's seeds (0: no sweep)")
+    parser.add_argument("--robot-task", default="push_cube")
+    parser.add_argument("--robot-batches", type=int, nargs="*", default=[1024, 4096, 16384])
+    parser.add_argument("--robot-backends", nargs="+", default=["mujoco", "mjx"])
     parser.add_argument("--out", default="results/accelerator_timings.md")
     args = parser.parse_args()
-    device = f"{report.machine()}; JAX device: {jax.devices()[0].device_kind} x {jax.device_count()}"
-    lines = [f"Paper 2D settings, 250 generations; {device}.", "",
-             "| task | algorithm | ms / generation (one run) | sweep of " f"{args.seeds} seeds, s (with compile) | "
-             "same, second call, s |", "|---|---|---|---|---|"]
-    for task in ("obstacle2d", "object2d"):
-        for algorithm in ("qd", "mqd", "random"):
-            cfg = Config.paper_2d(task=task, algorithm=algorithm)
-            ms = ms_per_generation(cfg) if algorithm != "random" else float("nan")
-            first, second = _sweep_seconds(cfg, args.seeds)
-            lines.append(f"| {task} | {algorithm} | {ms:.2f} | {first:.1f} | {second:.1f} |")
-            print(lines[-1], flush=True)
-    report.write(lines, args.out)
+    lines = [f"{report.machine()}; JAX {jax.__version__}, device: {jax.devices()[0].device_kind} x "
+             f"{jax.device_count()}.", "",
+             f"2D Obstacle, Table II's 2D settings (capacity max(4096, population)); a chunk of {args.generations} "
+             f"generations after {args.grow}, median of {args.repeats}, compile excluded; stages jitted alone, ms.",
+             "", "| algorithm | population | ms / generation | vs smallest population | insertion rounds | "
+             "ask | rollouts | insert | archive + coverage | update |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for algorithm in args.algorithms:
+        first = None
+        for population in args.populations:
+            row = population_row(algorithm, population, args)
+            first = first or row["generation"]
+            lines.append(f"| {algorithm} | {population} | {row['generation']:.2f} | {row['generation'] / first:.1f} | "
+                         f"{row['rounds']:.1f} | " + " | ".join(
+                             f"{row[s]:.2f}" for s in ("ask", "rollouts", "insert", "archive + coverage", "update"))
+                         + " |")
+            report.write(lines, args.out)
+    if args.seeds:
+        first, second = sweep_seconds(args.seeds)
+        lines += ["", f"A sweep of {args.seeds} vmapped \"mqd\" runs of 2D Obstacle, 250 generations (`run_batch`): "
+                  f"{first:.1f} s with compiling, {second:.1f} s the second call."]
+        report.write(lines, args.out)
+    if args.robot_batches:
+        lines += ["", *bench_physics.table(args.robot_task, args.robot_batches, args.robot_backends, args.repeats)]
+        report.write(lines, args.out)
 
 
 if __name__ == "__main__":

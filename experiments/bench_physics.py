@@ -54,23 +54,17 @@ def _raw_mjx(task, ctrl: np.ndarray) -> Callable[[], object]:
     return lambda: run(ctrl, jnp.ones(ctrl.shape[0], bool))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--task", default="push_cube")
-    parser.add_argument("--populations", type=int, nargs="+", default=[100, 1024, 4096])
-    parser.add_argument("--backends", nargs="+", default=["mujoco", "mjx", "warp"], choices=["mujoco", "mjx", "warp"])
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", default="results/bench_physics.md")
-    args = parser.parse_args()
-    c_task = registry.make(args.task, backend="mujoco")
+def table(task_name: str, populations: list[int], backends: list[str], repeats: int) -> list[str]:
+    """The markdown table of env-steps per second of `task_name`'s backends at each batch size."""
+    c_task = registry.make(task_name, backend="mujoco")
     low, high = jnp.asarray(c_task.action_low), jnp.asarray(c_task.action_high)
     horizon = c_task.horizon
     c = c_task._rollout  # the backend's MjModel, start state, control layout and per-thread MjData
-    tasks = {b: registry.make(args.task, backend=b) for b in args.backends if b != "mujoco"}
+    tasks = {b: registry.make(task_name, backend=b) for b in backends if b != "mujoco"}
     rows: list[tuple[str, int, float, float]] = []
     raw: dict[int, float] = {}
     simulated: dict[int, int] = {}
-    for pop in args.populations:
+    for pop in populations:
         a = jax.random.uniform(jax.random.PRNGKey(0), (pop, len(low)), minval=low, maxval=high)
         plan = jax.jit(c_task.plan)(a)
         ctrl = np.asarray(plan.ctrl, np.float64)
@@ -79,25 +73,25 @@ def main() -> None:
         rows_run = np.flatnonzero(np.asarray(plan.reached & plan.fits))
         simulated[pop] = len(rows_run)
         raw[pop], _ = _time(lambda ctrl=ctrl[rows_run]: rollout.rollout(
-            c.model, c.datas, c.initial_state[None], ctrl), args.repeats)
+            c.model, c.datas, c.initial_state[None], ctrl), repeats)
         rows.append(("raw mujoco.rollout (controls given), host cores", pop, raw[pop], 0.0))
-        if "mujoco" in args.backends:
+        if "mujoco" in backends:
             evaluate = jax.jit(c_task.evaluate)
             rows.append(("C MuJoCo backend, end to end", pop,
-                         *_time(lambda a=a, f=evaluate: f(a, None), args.repeats)))
+                         *_time(lambda a=a, f=evaluate: f(a, None), repeats)))
             plan_fn = jax.jit(c_task.plan)
-            rows.append(("  of which IK and trajectories", pop, *_time(lambda a=a, f=plan_fn: f(a), args.repeats)))
+            rows.append(("  of which IK and trajectories", pop, *_time(lambda a=a, f=plan_fn: f(a), repeats)))
         if "warp" in tasks:
             rows.append(("raw MuJoCo Warp through MJX (controls given)", pop,
-                         *_time(_raw_mjx(tasks["warp"], ctrl), args.repeats)))
+                         *_time(_raw_mjx(tasks["warp"], ctrl), repeats)))
         for backend, task in tasks.items():
             evaluate = jax.jit(task.evaluate)
             name = {"mjx": "MJX-JAX backend, end to end", "warp": "MuJoCo Warp backend, end to end"}[backend]
-            rows.append((name, pop, *_time(lambda a=a, f=evaluate: f(a, None), args.repeats)))
-    lines = [f"{args.task}, horizon {horizon} steps, random actions; {report.machine()}; "
+            rows.append((name, pop, *_time(lambda a=a, f=evaluate: f(a, None), repeats)))
+    lines = [f"{task_name}, horizon {horizon} steps, random actions; {report.machine()}; "
              f"JAX device: {jax.devices()[0].device_kind}.", "",
              "Env-steps count the rows the C backend simulates (" + ", ".join(
-                 f"{simulated[n]} of {n}" for n in args.populations) + "; MJX and Warp simulate every row).", "",
+                 f"{simulated[n]} of {n}" for n in populations) + "; MJX and Warp simulate every row).", "",
              "| rollouts | batch | s per generation | env-steps / s | vs raw mujoco.rollout (same batch) | compile s |",
              "|---|---|---|---|---|---|"]
     for name, n, s, compile_s in rows:
@@ -105,7 +99,18 @@ def main() -> None:
         # Steps per second mean nothing for the IK alone.
         cells = " | " if name.startswith("  of which") else f"{rate:,.0f} | {raw[n] / s:.2f}"
         lines.append(f"| {name} | {n} | {s:.3f} | {cells} | {compile_s:.1f} |")
-    report.write(lines, args.out)
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="push_cube")
+    parser.add_argument("--populations", type=int, nargs="+", default=[100, 1024, 4096])
+    parser.add_argument("--backends", nargs="+", default=["mujoco", "mjx", "warp"], choices=["mujoco", "mjx", "warp"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="results/bench_physics.md")
+    args = parser.parse_args()
+    report.write(table(args.task, args.populations, args.backends, args.repeats), args.out)
 
 
 if __name__ == "__main__":

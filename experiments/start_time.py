@@ -31,7 +31,7 @@ def start(argv: list[str], env: dict[str, str]) -> dict[str, float]:
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     found: dict[str, float] = {}
     for line in proc.stdout:
-        if line.startswith("compiled in"):
+        if line.startswith(("compiled in", "loaded the compiled program from the cache in")):
             found["to first generation"] = time.perf_counter() - began
             found["compiling (reported)"] = float(re.findall(r"[\d.]+", line)[0])
     if proc.wait() != 0:

@@ -3,8 +3,11 @@
     python tests/reference_runs.py     # writes tests/data/reference_runs.npz (with the tests' XLA flags)
 
 `test_reference_runs.py` runs the same configs and compares every array of the final state and every metric
-with the saved ones. Written from the code of mqd-jax 0.9.0 (its git revision and the CPU model are saved
-beside the arrays): a change that alters a run's numbers shows here first.
+with the saved ones. `reference_runs.npz` was written from the code of mqd-jax 0.9.0 on an AMD EPYC without
+AVX-512; `reference_runs_avx512.npz` from the code of 0.12.0 (git 94c1f0c; "+dirty": this file's output path and
+CPU label only) on an AMD EPYC with AVX-512, whose vector units round C MuJoCo's physics and M-QD's training
+otherwise. Each file saves its git revision and the CPU (`cpu_model`) beside the arrays; the test compares with
+the file of this machine's CPU: a change that alters a run's numbers shows here first.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from mqd_jax.core import registry
 from mqd_jax.experiment.provenance import provenance
 
 PATH = pathlib.Path(__file__).resolve().parent / "data" / "reference_runs.npz"
+PATHS = (PATH, PATH.with_name("reference_runs_avx512.npz"))  # the saved runs, of the CPUs they were made on
 ALGORITHMS = ("qd", "random", "mqd", "mqd-paper")
 TASKS = ("obstacle2d", "push_cube")
 
@@ -41,10 +45,14 @@ def config(task: str, algorithm: str) -> Config:
 
 
 def cpu_model() -> str:
-    """The CPU's model name (floats of M-QD's model may round otherwise on another one)."""
+    """The CPU's model name and whether it has AVX-512 (MuJoCo's physics and M-QD's model may round otherwise on
+    another one: one name covers processors with and without it)."""
     try:
         with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+            lines = f.read().splitlines()
+        name = next(line.split(":", 1)[1].strip() for line in lines if line.startswith("model name"))
+        flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
+        return name + (" with AVX-512" if "avx512f" in flags else "")
     except (OSError, StopIteration):
         return platform.processor() or platform.machine()
 

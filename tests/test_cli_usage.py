@@ -3,6 +3,7 @@
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 
@@ -26,7 +27,7 @@ def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_pat
         np.testing.assert_array_equal(chunked[name], values, err_msg=name)
 
 
-def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch, tiny_flags):
+def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch, tiny_flags, refused):
     argv = ["run", *tiny_flags, "--generations", "4", "--chunk", "2", "--algorithm", "mqd-paper",
             "--algorithm-option", "warmup_samples=8", "num_batches=2", "--out", str(tmp_path)]
     chunk = cli._Progress.chunk
@@ -43,9 +44,12 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
     assert "interrupted at generation 2; the same command with --resume continues" in captured.err
     assert "Traceback" not in captured.err
     monkeypatch.setattr(cli._Progress, "chunk", chunk)
+    refused(argv, f"holds a checkpoint of this run: `mqd {' '.join(argv)} --resume` continues it")
     cli.main([*argv, "--resume"])
     out = capsys.readouterr().out
-    assert "resuming at generation 2 of 4" in out and "compiled in" in out
+    assert "resuming at generation 2 of 4" in out
+    assert re.search(r"^(compiled|loaded the compiled program from the cache|the program was ready .*) in [\d.]+ s$",
+                     out, re.M), out
     metrics = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
     last = [line for line in out.splitlines() if line.startswith("generation")][-1]
     assert last.startswith("generation    4/4") and f"discarded {sum(metrics['discarded']):6d}" in last

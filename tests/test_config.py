@@ -47,7 +47,7 @@ def test_invalid_values_name_the_field(field, value):
                                                                            "Surrogate.batch_size=0"),
     ("mqd", "num_batches", -1, "Surrogate.num_batches=-1"), ("mqd", "warmup_samples", -5,
                                                                 "ModelEmitter.warmup_samples=-5"),
-    ("mqd", "hidden_size", True, "hidden_size=True is invalid: expected a int"),
+    ("mqd", "hidden_size", True, "hidden_size=True is invalid: expected an int"),
     ("qd", "iso_sigma", -0.1, "IsoLine.iso_sigma=-0.1"), ("qd", "line_sigma", float("inf"), "IsoLine.line_sigma=inf"),
     ("mqd", "pool_factor", 0, "Diverse.pool_factor=0"), ("mqd", "steering_share", 1.0, "Steering.share=1.0"),
     ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "Surrogate.anchor='first'"),

@@ -19,11 +19,11 @@ def blocks(path, language):
 
 
 @pytest.mark.parametrize("path", [p for p in DOCS if blocks(p, "python")], ids=lambda p: p.name)
-def test_python_blocks_run(path, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # examples may write files
-    namespace = {}
-    for code in blocks(path, "python"):  # in order, sharing names, as a reader runs them
-        exec(compile(code, str(path), "exec"), namespace)
+def test_python_blocks_run_each_on_its_own(path, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # examples may write files: they must write none where they are run
+    for code in blocks(path, "python"):  # each alone, as a reader pastes one: it imports what it uses
+        exec(compile(code, str(path), "exec"), {"__name__": "__main__"})
+    assert not list(tmp_path.iterdir()), "an example left files in the folder it was run from"
 
 
 def commands(text):

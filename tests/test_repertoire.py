@@ -1,11 +1,12 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import reference
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mqd_jax.core import neighbours
+from mqd_jax.core import neighbours, repertoire
 from mqd_jax.core.repertoire import AddStatus, Repertoire, insert
 
 NAMES = {AddStatus.SKIPPED: "skipped", AddStatus.ADDED: "added", AddStatus.REPLACED: "replaced",
@@ -165,3 +166,55 @@ def test_vmapped_insertion_equals_member_by_member():
             np.testing.assert_array_equal(got[0].neighbours.index, singles[s].neighbours.index)
             np.testing.assert_allclose(got[0].novelty, singles[s].novelty, rtol=1e-6)
     assert len({int(c) for c in batch.count}) > 1  # members really had different sizes
+
+
+def _random_generations(rng, batch, capacity, pop, dim):
+    """`batch` random insertion problems of one shape: repertoires from empty to full, candidates clustered
+    around three centres (or not), some duplicated, qualities rounded to make ties, a few skipped."""
+    counts = rng.integers(0, capacity + 1, batch)
+    counts[:4] = [0, capacity, capacity - 1, capacity - pop // 2]  # empty, full, and filling up in the generation
+    old_b = rng.random((batch, capacity, dim)).astype(np.float32)
+    centres = rng.random((batch, 3, dim))
+    spread = rng.choice([0.002, 0.05, 0.3], (batch, 1, 1))
+    around = centres[np.arange(batch)[:, None], rng.integers(0, 3, (batch, pop))]
+    b = around + spread * rng.normal(size=(batch, pop, dim))
+    b[:, pop // 2:pop // 2 + 4] = b[:, :1]  # exact duplicates
+    q = rng.random((batch, pop)).round(rng.choice([1, 6])).astype(np.float32)
+    reps = jax.vmap(lambda ob, oq, n: Repertoire.empty(capacity, 1, dim, K + 2).replace(
+        behaviors=ob, qualities=oq, valid=jnp.arange(capacity) < n, count=n))(
+        jnp.asarray(old_b), jnp.asarray(rng.random((batch, capacity)).astype(np.float32)),
+        jnp.asarray(counts, jnp.int32))
+    return reps, jnp.asarray(b.astype(np.float32)), jnp.asarray(q), jnp.asarray(rng.random((batch, pop)) > 0.1)
+
+
+@pytest.mark.parametrize("dim", [1, 3, 8])
+def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim):
+    """The sequential rule, kept as the oracle, against the rounds, on 96 random problems per dimension (vmapped):
+    statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1."""
+    capacity, pop = 48, 24
+
+    def both(rep, b, q, usable, t_dist):
+        near_d, near_i = repertoire._nearest_before(2, capacity, rep, b)
+        args = (rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist)
+        return repertoire._sequential_rule(*args), repertoire._parallel_rule(*args)
+
+    rng = np.random.default_rng(dim)
+    reps, b, q, usable = _random_generations(rng, 96, capacity, pop, dim)
+    t_dist = jnp.asarray(rng.choice([0.01, 0.1, 0.4], 96), jnp.float32)
+    seq, par = jax.jit(jax.vmap(both))(reps, b, q, usable, t_dist)
+    for name in ("status", "alive", "victim_slot", "victim_candidate"):
+        np.testing.assert_array_equal(getattr(par, name), getattr(seq, name), err_msg=name)
+    np.testing.assert_array_equal(np.where(par.alive, par.slot, -1), np.where(seq.alive, seq.slot, -1))
+    statuses = set(np.unique(seq.status).tolist())
+    assert statuses == set(range(5)), statuses  # every outcome occurred, DROPPED_FULL included
+    assert (np.asarray(par.rounds) <= pop + 1).all() and np.asarray(par.rounds).max() > 3
+
+
+def test_candidates_that_cannot_touch_each_other_settle_in_three_rounds():
+    """Far apart candidates in an empty repertoire: round 1 decides them, round 2 their slots (the count of added
+    skills before each), round 3 finds nothing changed; however many there are."""
+    for pop in (4, 64):
+        rep = Repertoire.empty(128, 1, 2, K + 2)
+        b = jnp.stack([jnp.arange(pop) * 0.5, jnp.zeros(pop)], axis=1)
+        _, ins = _insert(rep, jnp.zeros((pop, 1)), b, jnp.ones(pop), jnp.ones(pop, bool), jnp.float32(0.1))
+        assert int(ins.rounds) == 3 and (np.asarray(ins.slot) == np.arange(pop)).all()

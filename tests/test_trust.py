@@ -162,16 +162,19 @@ def test_adaptation_of_replaced_mqd_runs_is_left_out_and_tables_are_remade(tmp_p
     assert found == {} and stale == ["obstacle2d"]
 
 
-def test_saving_a_batch_removes_the_tables_made_before_it(tmp_path):
+def test_saving_a_batch_removes_the_tables_made_before_it_and_only_those(tmp_path):
     made = ["table1.md", "adaptation.md", "fig2_obstacle2d.png", "fig3_adaptation_error.png"]
-    for name in made:
-        (tmp_path / name).write_text("made from earlier results")
+    with folders.lock(str(tmp_path)):
+        folders.claim(str(tmp_path), "sweep", {}, results.files(), False)
+        for name in made:
+            folders.write_atomically(str(tmp_path / name), b"made from earlier results")
+    (tmp_path / "fig2_mine.png").write_text("the user's, named like a figure")
     cfg = Config(max_generations=3, population_size=8, capacity=64, algorithm="random")
     keys = np.asarray(seed_keys(2))
     states, metrics = run_batch(cfg, keys)
     results.save_runs(str(tmp_path), cfg, keys, states, metrics, 1.0)
     assert not any((tmp_path / name).exists() for name in made)
-    assert (tmp_path / "obstacle2d_random.json").exists()
+    assert (tmp_path / "obstacle2d_random.json").exists() and (tmp_path / "fig2_mine.png").exists()
 
 
 # Case 3: one writer at a time.
@@ -201,10 +204,14 @@ def test_a_second_writer_is_refused_and_a_killed_writer_leaves_no_lock(tmp_path,
 
 
 def test_leftover_temporary_files_of_a_killed_writer_are_removed(tmp_path, capsys):
-    (tmp_path / "metrics.json.abc123.mqdtmp").write_bytes(b"half a file")
+    with folders.lock(str(tmp_path)):
+        folders.claim(str(tmp_path), "run", {"seed": 0}, ("metrics.json",), False)
+        folders.write_json(str(tmp_path / "metrics.json"), {"a": 1})
+    (tmp_path / "metrics.json.abc12345.mqdtmp").write_bytes(b"half a file")
+    (tmp_path / "notes.txt.abc12345.mqdtmp").write_bytes(b"a user's file, named like a temporary one")
     with folders.lock(str(tmp_path)) as removed:
-        assert [os.path.basename(p) for p in removed] == ["metrics.json.abc123.mqdtmp"]
-    assert not list(tmp_path.glob("*.mqdtmp"))
+        assert [os.path.basename(p) for p in removed] == ["metrics.json.abc12345.mqdtmp"]
+    assert [p.name for p in tmp_path.glob("*.mqdtmp")] == ["notes.txt.abc12345.mqdtmp"]
 
 
 # Case 4: runtime parameters, states and checkpoints are checked.

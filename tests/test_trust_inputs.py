@@ -167,8 +167,8 @@ def test_starting_afresh_over_a_checkpoint_is_refused_with_the_command_that_resu
     argv = ["run", *TINY, "--out", str(tmp_path)]
     cli.main(argv)
     before = digest(tmp_path)
-    err = refused(argv, f"holds a checkpoint of this run: `mqd {' '.join(argv)} --resume` continues it; "
-                        "--overwrite starts afresh")
+    err = refused(argv, "holds this run, finished (2 generations): its results are there; --overwrite runs it "
+                        "again")
     refused([*argv, "--resume", "--overwrite"], "--resume and --overwrite together")
     assert digest(tmp_path) == before and err.count("\n") == 1
     # Without its manifest (an older folder): still never deleted by --resume --overwrite.

@@ -55,8 +55,9 @@ def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
             raise ValueError(f"algorithm_options: {name!r} takes no option {option!r}; its options: {listed}")
         default = known[option]
         if not (type(value) is type(default) or (type(default) is float and type(value) is int)):
-            raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected a "
-                             f"{type(default).__name__} (default {default!r})")
+            kind = type(default).__name__
+            raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected "
+                             f"{'an' if kind[0] in 'aeiou' else 'a'} {kind} (default {default!r})")
     return {**known, **{o: float(v) if type(known[o]) is float else v for o, v in given.items()}}
 
 

@@ -126,6 +126,10 @@ class Config:
         _check(is_real(self.t_dist) and self.t_dist > 0, "t_dist", self.t_dist, "a finite float > 0")
         _check(self.population_size <= self.capacity, "population_size", self.population_size,
                f"an int <= capacity ({self.capacity})")
+        _check(self.k < self.capacity, "k", self.k, f"an int < capacity ({self.capacity}): a skill's k nearest "
+               "neighbours are other skills of the repertoire")
+        _check(self.capacity < 2**31 and self.archive_capacity < 2**31, "capacity", self.capacity,
+               "an int < 2^31 (slots are int32), and so archive_capacity")
         given = _options(self.algorithm_options)
         if isinstance(self.algorithm, Emitter):
             _check(not given, "algorithm_options", dict(given), "{} with an Emitter (it carries its own settings)")

@@ -13,7 +13,8 @@ run may `vmap` over) are the emitter's own: `default_params()` gives them from
 its fields, `check_params` refuses bad concrete values, and `propose`/`update`
 read them as `params.emitter.<name>` (`mqd_jax.core.params.Params`; the engine's
 `params.t_dist` beside them). `check_run(population_size, max_generations)`
-refuses, before anything is traced, a run the emitter cannot serve; `check_task(task)`, a task it cannot.
+refuses, before anything is traced, a run the emitter cannot serve; `check_task(task)`, a task it cannot;
+`pool_size(num)` says how many candidates it judges for `num` proposals (a run's memory estimate).
 
 `propose` gives `num` candidate actions and which of them to roll out;
 `update` sees their results (`Evaluated`) and the repertoire after they were
@@ -116,6 +117,11 @@ class Emitter:
     def check_task(self, task: Task) -> None:
         """Raises ValueError if the emitter cannot serve this task (default: it can)."""
         del task
+
+    def pool_size(self, num: int) -> int:
+        """How many candidates the emitter makes and judges to propose `num` (default: `num`); sizes the memory
+        estimate a run is checked against before it is traced (`mqd_jax.core.sizes`)."""
+        return num
 
     def propose(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:

@@ -40,14 +40,27 @@ def sq_dists_by_product(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.maximum((a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * product, 0.0)
 
 
+def min_with_index(values: jax.Array, ids: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The smallest entry of each row of values[R, N] and its id (ids[R, N]; ties: the smaller id), in one
+    reduction: a minimum found apart from its position could be matched against a recomputed row, rounded
+    otherwise (XLA may fuse a distance matrix into each consumer, contracting multiply-adds in one and not the
+    other), and then match none. NaN entries are passed over; a row without a number gives (inf, int32 max)."""
+    def smaller(a: tuple[jax.Array, jax.Array], b: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        take_a = (a[0] < b[0]) | ((a[0] == b[0]) & (a[1] < b[1])) | jnp.isnan(b[0])
+        return jnp.where(take_a, a[0], b[0]), jnp.where(take_a, a[1], b[1])
+
+    init = (jnp.array(jnp.inf, values.dtype), jnp.array(jnp.iinfo(jnp.int32).max, jnp.int32))
+    return jax.lax.reduce((values, ids.astype(jnp.int32)), init, smaller, (1,))
+
+
 def _passes(values: jax.Array, ids: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
-    """k rounds of min-extraction; ties go to the smaller id. values, ids: [R, N]."""
-    big = jnp.iinfo(jnp.int32).max
+    """k rounds of min-extraction; ties go to the smaller id. values, ids: [R, N]. Rows of NaN (a NaN query) give
+    NaN distances and id -1."""
+    nan = jnp.isnan(values).all(axis=1)
     out_v, out_i = [], []
     for _ in range(k):
-        m = values.min(axis=1)
-        sel = jnp.where(values == m[:, None], ids, big).min(axis=1)
-        out_v.append(m)
+        m, sel = min_with_index(values, ids)
+        out_v.append(jnp.where(nan, jnp.nan, m))
         out_i.append(jnp.where(jnp.isfinite(m), sel, -1))
         values = jnp.where(ids == sel[:, None], jnp.inf, values)
     return jnp.stack(out_v, 1), jnp.stack(out_i, 1)

@@ -90,6 +90,7 @@ class Insertion:
         the entry is the candidate itself (REJECTED, DROPPED_FULL) or the skill
         it replaced, given by `victim_slot` (>= 0, a pre-generation skill) or
         `victim_candidate` (>= 0, an earlier candidate of the generation).
+      rounds: int32 scalar, the data-parallel rounds the rule took (`_parallel_rule`; the sequential rule: P).
     """
 
     status: jax.Array
@@ -97,6 +98,7 @@ class Insertion:
     alive: jax.Array
     victim_slot: jax.Array
     victim_candidate: jax.Array
+    rounds: jax.Array
 
     @property
     def archived(self) -> jax.Array:
@@ -114,9 +116,9 @@ def _nearest_remaining(behavior: jax.Array, behaviors: jax.Array, valid: jax.Arr
     """Squared distance, slot and quality of the pre-generation skill nearest to behavior[d] among those
     victim_slot[P] has not replaced (inf if there is none); behaviors: [C, d], valid, qualities: [C]."""
     d = jnp.where(valid & ~_replaced(victim_slot, valid.shape[0]),
-                  neighbours.sq_dists(behavior[None], behaviors)[0], jnp.inf)
-    j = jnp.argmin(d).astype(jnp.int32)
-    return d[j], j, qualities[j]
+                  neighbours.sq_dists(behavior[None], behaviors), jnp.inf)
+    d, j = neighbours.min_with_index(d, jnp.arange(valid.shape[0])[None])
+    return d[0], j[0], qualities[j[0]]
 
 
 def _sequential_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
@@ -153,7 +155,7 @@ def _sequential_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, n
         # Nearest by (distance, slot), as a scan over the repertoire's slots would find.
         nearest_is_new = (d_new < d_old) | ((d_new == d_old) & (slot_new < slot_old))
         d_nearest = jnp.where(nearest_is_new, d_new, d_old)
-        q_nearest = jnp.where(nearest_is_new, qualities[j_new], q_old)
+        q_nearest = jnp.where(nearest_is_new, qualities[jnp.maximum(j_new, 0)], q_old)
         is_new = d_nearest > t2
         full = rep.count + count >= capacity
         replace = usable[i] & ~is_new & (qualities[i] > q_nearest)
@@ -171,12 +173,109 @@ def _sequential_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, n
                             s.alive & ~((cands == j_new) & replace & nearest_is_new)),
             victim_slot=jnp.where(at_i, jnp.where(replace & ~nearest_is_new, slot_old, -1), s.victim_slot),
             victim_candidate=jnp.where(at_i, jnp.where(replace & nearest_is_new, j_new, -1), s.victim_candidate),
+            rounds=s.rounds + 1,
         )
 
     none = jnp.full(pop, -1, jnp.int32)
     init = Insertion(status=jnp.zeros(pop, jnp.int32), slot=jnp.zeros(pop, jnp.int32), alive=jnp.zeros(pop, bool),
-                     victim_slot=none, victim_candidate=none)
+                     victim_slot=none, victim_candidate=none, rounds=jnp.int32(0))
     return jax.lax.fori_loop(0, pop, step, init)
+
+
+def _first_at(targets: jax.Array, size: int) -> jax.Array:
+    """[size] the first (lowest) candidate i whose targets[i] names each index (-1: none), or P if none does."""
+    pop = targets.shape[0]
+    return jnp.full(size, pop, jnp.int32).at[jnp.where(targets >= 0, targets, size)].min(
+        jnp.arange(pop, dtype=jnp.int32), mode="drop")
+
+
+def _search_remaining(need_all: jax.Array, removed_at: jax.Array, behaviors: jax.Array, rep: Repertoire,
+                      quick: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
+    """`quick` (squared distance, slot, quality of each candidate's nearest pre-generation skill [P]) where
+    need_all[P] is False; elsewhere those of the nearest pre-generation skill that no candidate before it replaced
+    (removed_at[C]: the first candidate that replaced each slot, P if none)."""
+    cands = jnp.arange(behaviors.shape[0], dtype=jnp.int32)
+    there = rep.valid[None] & (removed_at[None] >= cands[:, None])
+    d = jnp.where(there, neighbours.sq_dists(behaviors, rep.behaviors), jnp.inf)
+    d, j = neighbours.min_with_index(d, jnp.broadcast_to(jnp.arange(rep.capacity), d.shape))
+    found = (d, j, rep.qualities[j])
+    return tuple(jnp.where(need_all, a, b) for a, b in zip(found, quick, strict=True))
+
+
+def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
+                   d_cand: jax.Array, qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
+    """The sequential rule's outcome (`_sequential_rule`, same arguments), computed in data-parallel rounds.
+
+    Every candidate's step is a function of the outcomes of the candidates before it. A round computes every
+    candidate's step at once from the previous round's outcomes (the first round: from none); the outcomes
+    that did not change are a fixed point, and the only one: the first candidate whose outcome would differ
+    from the sequential rule's sees only correct predecessors, so its step is the sequential one. After round
+    r at least the first r candidates are settled; in practice a generation settles in a few rounds, as only
+    candidates within 2 t_dist of each other (a shared nearest skill, or one nearest the other) and the running
+    count of added skills (slots, a full repertoire) link them. Returns the outcome (`Insertion.slot` is
+    meaningful where the candidate is alive at the end; `rounds`: the rounds taken, the last one the check that
+    nothing changes).
+    """
+    capacity, pop = rep.capacity, d_cand.shape[0]
+    t2 = t_dist**2
+    cands = jnp.arange(pop, dtype=jnp.int32)
+    before = cands[None, :] < cands[:, None]  # [i, j]: j comes before i
+    near_q = rep.qualities[jnp.maximum(near_i, 0)]
+    close = before & (d_cand <= t2)  # the earlier candidates that can be a candidate's nearest skill within t_dist
+
+    def step(s: Insertion) -> Insertion:
+        """Every candidate's step, given the outcomes `s` of the candidates before it."""
+        added = (s.status == AddStatus.ADDED).astype(jnp.int32)
+        count = jnp.cumsum(added) - added  # skills added before each candidate
+        lives = (s.status == AddStatus.ADDED) | (s.status == AddStatus.REPLACED)
+        killed_at = _first_at(s.victim_candidate, pop)  # the candidate that replaced each one (P: none)
+        removed_at = _first_at(s.victim_slot, capacity)  # the candidate that replaced each pre-generation skill
+        # The nearest pre-generation skill still there: the first listed one not replaced by an earlier candidate,
+        # else a full search (all M listed were replaced and the next one may be within t_dist).
+        still_there = (near_i >= 0) & (removed_at[jnp.maximum(near_i, 0)] >= cands[:, None])
+        first = jnp.argmax(still_there, axis=1)
+        take = lambda x: jnp.take_along_axis(x, first[:, None], axis=1)[:, 0]  # noqa: E731
+        quick = (jnp.where(still_there.any(1), take(near_d), jnp.inf), take(near_i), take(near_q))
+        need_all = ~still_there.any(1) & (near_d[:, -1] <= t2)
+
+        d_old, slot_old, q_old = batching.rare_cond(need_all.any(), _search_remaining, lambda *a: a[-1], need_all,
+                                                    removed_at, behaviors, rep, quick)
+        # The nearest skill within t_dist written earlier in the generation, the lowest slot among equally near.
+        alive = close & lives[None] & (killed_at[None] >= cands[:, None])
+        d_row = jnp.where(alive, d_cand, jnp.inf)
+        d_new = d_row.min(axis=1)
+        j_new = jnp.argmin(jnp.where(alive & (d_row == d_new[:, None]), s.slot[None], capacity), axis=1)
+        slot_new = s.slot[j_new]
+        nearest_is_new = jnp.isfinite(d_new) & ((d_new < d_old) | ((d_new == d_old) & (slot_new < slot_old)))
+        j_new = jnp.where(nearest_is_new, j_new, -1)  # a function of the earlier candidates' outcomes only
+        d_nearest = jnp.where(nearest_is_new, d_new, d_old)
+        q_nearest = jnp.where(nearest_is_new, qualities[jnp.maximum(j_new, 0)], q_old)
+        is_new = d_nearest > t2
+        full = rep.count + count >= capacity
+        replace = usable & ~is_new & (qualities > q_nearest)
+        status = jnp.select([~usable, is_new & ~full, is_new, replace],
+                            [AddStatus.SKIPPED, AddStatus.ADDED, AddStatus.DROPPED_FULL, AddStatus.REPLACED],
+                            AddStatus.REJECTED).astype(jnp.int32)
+        return Insertion(
+            status=status,
+            slot=jnp.where(status == AddStatus.ADDED, rep.count + count, jnp.where(nearest_is_new, slot_new, slot_old)
+                           ).astype(jnp.int32),
+            alive=(status == AddStatus.ADDED) | replace,
+            victim_slot=jnp.where(replace & ~nearest_is_new, slot_old, -1).astype(jnp.int32),
+            victim_candidate=jnp.where(replace & nearest_is_new, j_new, -1).astype(jnp.int32),
+            rounds=s.rounds + 1,
+        )
+
+    def changed(carry: tuple[Insertion, Insertion]) -> jax.Array:
+        a, b = carry
+        return jnp.any(jnp.stack([jnp.any(x != y) for x, y in zip(jax.tree.leaves(a.replace(rounds=0)),
+                                                                   jax.tree.leaves(b.replace(rounds=0)), strict=True)]))
+
+    none = jnp.full(pop, -1, jnp.int32)
+    start = Insertion(status=jnp.zeros(pop, jnp.int32), slot=jnp.zeros(pop, jnp.int32), alive=jnp.zeros(pop, bool),
+                      victim_slot=none, victim_candidate=none, rounds=jnp.int32(0))
+    _, ins = jax.lax.while_loop(changed, lambda c: (c[1], step(c[1])), (start, step(start)))
+    return ins.replace(alive=ins.alive & (_first_at(ins.victim_candidate, pop) == pop))
 
 
 def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
@@ -287,8 +386,8 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
     near_d, near_i = _on_prefix(sizes, rep.count, functools.partial(_nearest_before, min(num_near, sizes[0])), slim,
                                 behaviors)
-    ins = _sequential_rule(rep, behaviors, near_d, near_i, neighbours.sq_dists(behaviors, behaviors), qualities, usable,
-                           t_dist)
+    ins = _parallel_rule(rep, behaviors, near_d, near_i, neighbours.sq_dists(behaviors, behaviors), qualities, usable,
+                         t_dist)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
     return new.replace(actions=rep.actions.at[written_slots(ins, capacity)].set(actions, mode="drop")), ins

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mqd_jax.core import archive as archive_lib
-from mqd_jax.core import coverage, diagnostics, pytree, registry, repertoire
+from mqd_jax.core import coverage, diagnostics, pytree, registry, repertoire, sizes
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.emitter import Evaluated, Proposal
 from mqd_jax.core.params import Params
@@ -34,7 +34,7 @@ METRICS = {
     "repertoire_size": jnp.int32,
     "num_evaluations": jnp.int32, "evaluations": jnp.int32, "added": jnp.int32, "replaced": jnp.int32,
     "rejected": jnp.int32, "dropped_full": jnp.int32, "invalid": jnp.int32, "out_of_range": jnp.int32,
-    "out_of_box": jnp.int32,
+    "out_of_box": jnp.int32, "insertion_rounds": jnp.int32,
 }
 
 
@@ -121,7 +121,15 @@ def init(key: jax.Array, cfg: Config) -> State:
     task = get_task(cfg)
     check_outputs(task, cfg.task_name, cfg.population_size)
     cfg.emitter.check_task(task)
+    check_size(cfg)
     return _init(key, cfg)
+
+
+def check_size(cfg: Config, runs: int = 1) -> int:
+    """Raises ValueError, naming the bytes needed, if `runs` runs of `cfg` cannot fit in the device's memory
+    (`mqd_jax.core.sizes`); returns the bytes estimated. Nothing is traced but the state's shapes."""
+    return sizes.check(_state_shapes(cfg), cfg.population_size, cfg.emitter.pool_size(cfg.population_size),
+                       cfg.capacity, cfg.archive_capacity, runs)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -144,7 +152,7 @@ def _init(key: jax.Array, cfg: Config) -> State:
 @functools.cache
 def _state_shapes(cfg: Config) -> State:
     """The shapes and dtypes of a state of `cfg` (abstract: nothing runs)."""
-    return jax.eval_shape(lambda k: init(k, cfg), jax.ShapeDtypeStruct((2,), jnp.uint32))
+    return jax.eval_shape(lambda k: _init(k, cfg), jax.ShapeDtypeStruct((2,), jnp.uint32))
 
 
 registry.on_replace(coverage_points.cache_clear)
@@ -260,7 +268,8 @@ def _usable(candidates: Candidates, behaviors: jax.Array, qualities: jax.Array,
 @stage("insert")
 def _insert(rep: repertoire.Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array,
             usable: jax.Array, cfg: Config, params: Params) -> tuple[repertoire.Repertoire, repertoire.Insertion]:
-    """Stage insert: the paper's sequential insertion rule; novelty brought up to date."""
+    """Stage insert: the paper's sequential insertion rule (computed in data-parallel rounds); novelty brought up
+    to date."""
     return repertoire.insert(rep, actions, behaviors, qualities, usable, params.t_dist, cfg.k, repertoire.NUM_NEAR,
                              chunk=32)
 
@@ -303,8 +312,10 @@ def _update_emitter(key: jax.Array, state: State, candidates: Candidates, evalua
 
 
 @stage("metrics")
-def _metrics(state: State, candidates: Candidates, evaluated: Evaluated, task: Task) -> dict[str, jax.Array]:
-    """Stage metrics: the engine's metrics of the generation that made `state` (see `run_mqd`)."""
+def _metrics(state: State, candidates: Candidates, evaluated: Evaluated, task: Task,
+             rounds: jax.Array) -> dict[str, jax.Array]:
+    """Stage metrics: the engine's metrics of the generation that made `state` (see `run_mqd`); `rounds`: the
+    insertion's."""
     rep, usable = state.repertoire, evaluated.usable
     count = lambda status: (evaluated.status == status).sum(dtype=jnp.int32)  # noqa: E731
     q_low, q_high = task.quality_range
@@ -326,6 +337,7 @@ def _metrics(state: State, candidates: Candidates, evaluated: Evaluated, task: T
         "out_of_range": (usable & ((evaluated.qualities < q_low) | (evaluated.qualities > q_high))).sum(
             dtype=jnp.int32),
         "out_of_box": (usable & outside_box).sum(dtype=jnp.int32),
+        "insertion_rounds": rounds,
     }
 
 
@@ -391,7 +403,7 @@ def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities:
                 coverage=_cover(state.coverage, state.repertoire, evaluated, ins, params.t_dist),
                 emitter=emitter_state, key=key, generation=state.generation + 1,
                 num_evaluations=state.num_evaluations + candidates.rollout.sum(dtype=jnp.int32))
-    return new, {**_metrics(new, candidates, evaluated, get_task(cfg)), **emitter_metrics}
+    return new, {**_metrics(new, candidates, evaluated, get_task(cfg), ins.rounds), **emitter_metrics}
 
 
 def generation(state: State, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:

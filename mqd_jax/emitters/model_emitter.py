@@ -162,6 +162,9 @@ class ModelEmitter(Emitter):
         if self.steering is not None:
             self._steered_count(self.acquisition.pool_size(population_size), population_size)
 
+    def pool_size(self, num: int) -> int:
+        return self.inner.pool_size(self.acquisition.pool_size(num))
+
     def check_task(self, task: Task) -> None:
         self.inner.check_task(task)
         self.surrogate.check_task(task)

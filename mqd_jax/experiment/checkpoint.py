@@ -224,11 +224,12 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
             raise Refused(path, f"an array of shape {np.shape(got)} where {want.shape} was expected")
     state = jax.tree.map(lambda want, got: np.asarray(got, want.dtype), template, state)
     metrics = dict(payload["metrics"])
-    if metrics:  # metrics a later version added (0.12: max_quality, qd_score): NaN for the generations before
-        done = np.shape(metrics["coverage"])
+    if metrics:  # metrics a later version added (0.12: max_quality, qd_score; 0.13: insertion_rounds): NaN (-1 for
+        done = np.shape(metrics["coverage"])  # counts) for the generations before
         for name, dtype in metric_dtypes(cfg).items():
-            if name not in metrics and jnp.issubdtype(dtype, jnp.floating):
-                metrics[name] = np.full(done, np.nan, np.float32)
+            if name not in metrics:
+                floating = jnp.issubdtype(dtype, jnp.floating)
+                metrics[name] = np.full(done, np.nan if floating else -1, np.float32 if floating else np.int32)
     return state, metrics
 
 

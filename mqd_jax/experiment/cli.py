@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import json
 import math
@@ -49,6 +50,7 @@ RUN_FILES = ("metrics.json", "repertoire.npz", "run.png", "checkpoint.msgpack")
 SEEDS = 2**32  # a run's key is PRNGKey(seed): seeds 0 .. 2**32 - 1 give distinct keys
 _RUN_DEFAULTS = {"max_generations": 100}  # the main job is a short run
 CACHE_ENV = "MQD_JAX_CACHE_DIR"
+TRACEBACK_ENV = "MQD_TRACEBACK"  # set: an unexpected error shows its traceback instead of one line
 
 
 def _writable(folder: str) -> bool:
@@ -114,25 +116,37 @@ def _presets_help() -> str:
     return "\n".join(lines)
 
 
-def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (), preset: str = "paper-2d",
+def _default_text(name: str, defaults: dict[str, Any], preset: str) -> str:
+    """The value the flag of the Config field `name` takes when not given, in words, under `preset`."""
+    if preset in COLUMNS:
+        text = repr(getattr(COLUMNS[preset](**defaults), name))
+    else:
+        flat, robot = (getattr(column(**defaults), name) for column in (Config.paper_2d, Config.paper_robot))
+        text = repr(flat) if flat == robot else f"{flat!r}, {robot!r} for the robot tasks"
+    if name == "t_dist":
+        text += ", or the task's own where it declares one (Task.default_t_dist)"
+    return text
+
+
+def _add_config_flags(parser: argparse.ArgumentParser, skip: tuple[str, ...] = (), preset: str = "auto",
                       defaults: dict | None = None) -> None:
     """One flag per Config field (`--t-dist 0.03`, `--population 50`) and `--algorithm-option NAME=VALUE`; unset
-    flags keep the preset's value.
+    flags keep the preset's value (`auto`: Table II's column for the task), after `defaults`.
 
-    The help of each flag shows the value it takes when not given (the preset's, after `defaults`).
+    The help of each flag shows the value it takes when not given.
     """
-    choices = sorted(COLUMNS) + ([] if preset in COLUMNS else [preset])
-    parser.add_argument("--preset", choices=choices, default=preset,
-                        help="Table II's column the unset flags take: paper-2d, paper-robot" +
-                             (", auto: paper-robot for the robot tasks, else paper-2d" if preset == "auto" else "") +
+    defaults = defaults or {}
+    parser.add_argument("--preset", choices=[*sorted(COLUMNS), "auto"], default=preset,
+                        help="Table II's column the unset flags take: paper-2d, paper-robot, auto: paper-robot for the "
+                             "robot tasks, else paper-2d" + "".join(f"; --{n.replace('_', '-')} {v!r} unless given"
+                                                                   for n, v in defaults.items()) +
                              " (default: %(default)s)")
-    base = COLUMNS[preset](**(defaults or {})) if preset in COLUMNS else None
     specific = {"task": f"the task: {_task_names()}", "algorithm": f"one of {', '.join(algorithms.names())}"}
     for field in dataclasses.fields(Config):
         if field.name in skip or field.name == "algorithm_options":
             continue
         flags = ["--" + field.name.replace("_", "-"), *_ALIASES.get(field.name, [])]
-        default = "the preset's for the task" if base is None else repr(getattr(base, field.name))
+        default = _default_text(field.name, defaults, preset)
         text = f"{specific.get(field.name, 'Config.' + field.name)} (default: {default})"
         parser.add_argument(*flags, dest=field.name, type=type(field.default), default=None, help=text)
     parser.add_argument("--algorithm-option", "-O", dest="algorithm_options", type=_option, nargs="+",
@@ -153,8 +167,10 @@ def _config(args: argparse.Namespace, defaults: dict | None = None, **fixed: str
     algorithm = given.get("algorithm", Config.algorithm)
     if "algorithm" in fixed:  # a sweep's: only the options this algorithm takes
         options = {o: v for o, v in options.items() if o in algorithms.options(algorithm)}
-    preset = Config.paper if args.preset == "auto" else COLUMNS[args.preset]
-    return preset(**{**(defaults or {}), **given, "algorithm_options": options})
+    settings = {**(defaults or {}), **given, "algorithm_options": options}
+    if args.preset == "auto":
+        return Config.paper(settings.pop("task", Config.task), **settings)
+    return COLUMNS[args.preset](**settings)
 
 
 def _positive(text: str) -> int:
@@ -163,6 +179,21 @@ def _positive(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text} is invalid: expected an int >= 1")
     return value
+
+
+# Programs compiled or loaded (XLA's compile step, JAX's monitoring events) and the persistent cache's hits since
+# the process started: a start whose every program was a hit loaded them instead of compiling.
+_PROGRAMS, _CACHE_HIT = "/jax/core/compile/backend_compile_duration", "/jax/compilation_cache/cache_hits"
+_CACHE_EVENTS = dict.fromkeys((_PROGRAMS, _CACHE_HIT), 0)
+
+
+def _count_cache_event(event: str, *_: Any, **__: Any) -> None:
+    if event in _CACHE_EVENTS:
+        _CACHE_EVENTS[event] += 1
+
+
+jax.monitoring.register_event_listener(_count_cache_event)
+jax.monitoring.register_event_duration_secs_listener(_count_cache_event)
 
 
 class _Progress:
@@ -182,11 +213,14 @@ class _Progress:
             self.discarded = int(np.atleast_2d(metrics["discarded"]).sum(1).mean())
 
     def compiling(self, cache: str) -> None:
-        print(f"{self.label}compiling (once per config and machine; {cache}) ...", flush=True)
-        self.start = time.perf_counter()
+        print(f"{self.label}preparing the program (compiled once per config and machine; {cache}) ...", flush=True)
+        self.start, self.cache = time.perf_counter(), dict(_CACHE_EVENTS)
 
     def compiled(self) -> None:
-        print(f"{self.label}compiled in {time.perf_counter() - self.start:.1f} s", flush=True)
+        programs, hits = (_CACHE_EVENTS[e] - self.cache[e] for e in (_PROGRAMS, _CACHE_HIT))
+        done = ("compiled" if hits < programs else "loaded the compiled program from the cache" if programs
+                else "the program was ready (compiled earlier in this process)")
+        print(f"{self.label}{done} in {time.perf_counter() - self.start:.1f} s", flush=True)
         self.start, self.since = time.perf_counter(), self.done
 
     def chunk(self, done: int, m: dict[str, np.ndarray]) -> None:
@@ -220,6 +254,14 @@ def _upgraded_identity(identity: dict[str, Any]) -> dict[str, Any]:
         else identity
 
 
+def _finished(path: str, cfg: Config) -> bool:
+    """Whether the checkpoint `path` holds a run that has done all of `cfg`'s generations (False if unreadable)."""
+    try:
+        return int(np.asarray(checkpoint.read(path)["state"]["generation"])) >= cfg.max_generations
+    except (ValueError, KeyError, TypeError):
+        return False
+
+
 def _run(args: argparse.Namespace) -> None:
     if not 0 <= args.seed < SEEDS:
         raise ValueError(f"--seed {args.seed} is invalid: expected an int from 0 to {SEEDS - 1} (PRNGKey(seed): "
@@ -240,6 +282,9 @@ def _run(args: argparse.Namespace) -> None:
         _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": args.seed}, RUN_FILES,
                                    args.overwrite, upgrade=_upgraded_identity), "--overwrite")
         if os.path.exists(path) and not args.resume:
+            if not args.overwrite and _finished(path, cfg):
+                raise ValueError(f"{args.out!r} holds this run, finished ({cfg.max_generations} generations): its "
+                                 "results are there; --overwrite runs it again (removing them)")
             if not args.overwrite:
                 raise ValueError(f"{args.out!r} holds a checkpoint of this run: `{_command(args, add=('--resume',))}`"
                                  " continues it; --overwrite starts afresh (removing it)")
@@ -284,7 +329,19 @@ def _run(args: argparse.Namespace) -> None:
           + ", ".join(os.path.join(args.out, f) for f in written))
 
 
+def _distinct_file_names(tasks: list[str]) -> None:
+    """Refuses (ValueError) two task names that map to one results file name (`pp:sub.f` and `pp.sub:f`)."""
+    by_file: dict[str, str] = {}
+    for task in tasks:
+        other = by_file.setdefault(results.file_name(task), task)
+        if other != task:
+            raise ValueError(f"--tasks {other} {task}: both map to the file names {results.file_name(task)}_*, so "
+                             "one batch would overwrite the other; sweep them into separate folders (--out)")
+
+
 def _sweep(args: argparse.Namespace) -> None:
+    args.tasks, args.algorithms = list(dict.fromkeys(args.tasks)), list(dict.fromkeys(args.algorithms))
+    _distinct_file_names(args.tasks)
     taken = {o for a in args.algorithms for o in algorithms.options(a)}
     untaken = [o for o, _ in args.algorithm_options if o not in taken]
     if untaken:
@@ -312,7 +369,7 @@ def _sweep(args: argparse.Namespace) -> None:
         _say_removed(results.remove_batches(list(differ)), "--overwrite")
         _say_removed(results.remove_batches(list(stale)), "stale (another implementation)")
         if clash:  # the tables and figures describe removed runs
-            results.remove_derived(args.out)
+            _say_removed(results.remove_derived(args.out), "made of the replaced batches")
         found = [(stem, saved) for stem, saved in found if stem not in clash]
         planned = {results.stem(args.out, cfg) for cfg, _ in batches}
         for stem, e in damaged.items():
@@ -321,6 +378,8 @@ def _sweep(args: argparse.Namespace) -> None:
                 print(f"{e}\nits batch is run again; its files are kept as {', '.join(kept)}")
             else:
                 print(f"warning: {e}")
+        folders.plan(args.out, [{"task": cfg.task_name, "algorithm": cfg.algorithm, "seeds": len(keys)}
+                                for cfg, keys in batches])
         for cfg, keys in batches:
             label = f"{cfg.task} {cfg.algorithm}, {len(keys)} seeds: "
             if results.is_done(found, args.out, cfg, keys):
@@ -344,7 +403,9 @@ def _sweep(args: argparse.Namespace) -> None:
 
 def _adapt(args: argparse.Namespace) -> None:
     path = os.path.join(args.dir, results.ADAPTATION)
-    with folders.lock(args.dir, create=False):
+    with folders.lock(args.dir, create=False) as leftovers:
+        _say_removed(leftovers, "left by an interrupted writer")
+        _sweep_folder(args.dir, "adapt")
         try:
             found = results.read_adaptation(args.dir)
         except folders.Damaged as e:
@@ -377,18 +438,27 @@ def _adapt(args: argparse.Namespace) -> None:
                            "provenance": provenance(), "methods": methods}
             results.remove_derived(args.dir)
             folders.write_json(path, found)
-        _plot(args.dir)
+        _plot(args.dir, show="adaptation.md")
 
 
-def _plot(out: str, pair: tuple[int, int] | None = None) -> None:
+def _sweep_folder(folder: str, command: str) -> None:
+    """Refuses (ValueError) a folder that `mqd run` wrote: `command` works on a sweep's folder."""
+    if folders.kind(folder) == "run":
+        raise ValueError(f"{folder!r} is a folder of `mqd run`: `mqd {command}` takes a folder of `mqd sweep` (a "
+                         "run's folder holds its figure, run.png; `mqd render` watches its skills)")
+
+
+def _plot(out: str, pair: tuple[int, int] | None = None, show: str | None = None) -> None:
     """Tables (markdown) and figures of everything in the results folder `out` (call holding its lock); `pair`:
-    the two behavior dimensions (0-based) Figure 2 shows of each task that has them (refused if none has)."""
+    the two behavior dimensions (0-based) Figure 2 shows of each task that has them (refused if none has); `show`:
+    print only this table (default: every one)."""
     runs = results.load_runs(out)
     dims = {task: get_task(next(iter(by_alg.values())).cfg).behavior_dim for task, by_alg in runs.items()}
     if pair is not None and not any(max(pair) < d for d in dims.values()):  # before anything is written
         plots.projections(max(dims.values()), pair)  # raises, naming the dimensions
     results.remove_derived(out)
-    results.write_markdown(results.tables(runs), os.path.join(out, "table1.md"))
+    results.write_markdown(results.tables(runs, results.missing(out)), os.path.join(out, "table1.md"),
+                           show in (None, "table1.md"))
     for task, by_alg in runs.items():
         plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg,
                       os.path.join(out, f"fig2_{results.file_name(task)}.png"),
@@ -402,7 +472,8 @@ def _plot(out: str, pair: tuple[int, int] | None = None) -> None:
         print(f"left out the adaptation results of {', '.join(stale)}: their M-QD runs changed since `mqd adapt`; "
               f"run `mqd adapt {out} --tasks {' '.join(stale)}` again")
     if found:
-        results.write_markdown(results.adaptation_table(found), os.path.join(out, "adaptation.md"))
+        results.write_markdown(results.adaptation_table(found), os.path.join(out, "adaptation.md"),
+                               show in (None, "adaptation.md"))
         plots.adaptation_figure(found, "error", "behavioral error", os.path.join(out, "fig3_adaptation_error.png"))
         plots.adaptation_figure(found, "steps", "adaptation steps", os.path.join(out, "fig4_adaptation_steps.png"))
 
@@ -437,22 +508,36 @@ def _render(args: argparse.Namespace) -> None:
     else:
         raise ValueError(f"--index {args.index}: the repertoire holds {len(actions)} skills (0 to {len(actions) - 1})")
     out = args.out or os.path.join(args.dir, f"skill_{index}.gif")
+    target = os.path.dirname(out) or "."
+    if not out.lower().endswith(".gif") or not os.path.isdir(target):
+        raise ValueError(f"--out {out!r} is invalid: expected a new .gif file in an existing folder")
+    ours = folders.kind(target) is not None  # a results folder: its lock, and only files its manifest lists
+    if not ours and os.path.lexists(out):
+        raise ValueError(f"--out {out!r} exists: `mqd render` replaces only a GIF it wrote in a results folder; "
+                         "remove it, or give another --out")
     print(f"skill {index}: behavior {np.round(behaviors[index], 3).tolist()}, action "
           f"{np.round(actions[index], 3).tolist()}")
-    try:
-        frames = get_task(cfg).frames(actions[index], args.width, args.height)
-    except NotImplementedError as e:
-        raise ValueError(str(e)) from e
-    except Exception as e:  # MuJoCo's OpenGL context: say how to get one offscreen
-        if "gl" not in str(e).lower():
-            raise
-        raise ValueError(f"cannot render ({type(e).__name__}: {e}); offscreen: set MUJOCO_GL=egl (or osmesa)") from e
-    plots.write_animation(frames, out)
+    with folders.lock(target, create=False) if ours else contextlib.nullcontext():
+        if ours and os.path.lexists(out) and os.path.basename(out) not in folders.written(target):
+            raise ValueError(f"--out {out!r} is not written by mqd-jax there (not in its manifest), so it is not "
+                             "replaced: remove it, or give another --out")
+        try:
+            frames = get_task(cfg).frames(actions[index], args.width, args.height)
+        except NotImplementedError as e:
+            raise ValueError(str(e)) from e
+        except Exception as e:  # MuJoCo's OpenGL context: say how to get one offscreen
+            if "gl" not in str(e).lower():
+                raise
+            raise ValueError(f"cannot render ({type(e).__name__}: {e}); offscreen: set MUJOCO_GL=egl (or osmesa)"
+                             ) from e
+        plots.write_animation(frames, out)
 
 
 def _locked_plot(args: argparse.Namespace) -> None:
     pair = None if args.pair is None else (args.pair[0] - 1, args.pair[1] - 1)
-    with folders.lock(args.dir, create=False):
+    with folders.lock(args.dir, create=False) as leftovers:
+        _say_removed(leftovers, "left by an interrupted writer")
+        _sweep_folder(args.dir, "plot")
         _plot(args.dir, pair)
 
 
@@ -483,7 +568,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
                         help="seed sweeps (vmapped, sharded over devices): metrics, Table I, Figure 2",
                         epilog=_presets_help() + "\n(each algorithm of a sweep takes the options it has)",
                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    _add_config_flags(sw, skip=_PER_TASK, preset="auto")
+    _add_config_flags(sw, skip=_PER_TASK)
     sw.add_argument("--tasks", nargs="+", default=list(registry.registered_tasks()), metavar="TASK",
                     help=f"tasks to sweep: {_task_names()} (default: every registered task)")
     sw.add_argument("--algorithms", nargs="+", default=list(algorithms.names()), choices=algorithms.names(),
@@ -530,13 +615,24 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], None]] = {
     "run": _run, "sweep": _sweep, "adapt": _adapt, "plot": _locked_plot, "render": _render}
 
 
+def _one_line(e: BaseException) -> str:
+    """What went wrong, in one line: an OSError's file and reason, else the exception's type and first line."""
+    if isinstance(e, OSError) and e.strerror:
+        where = " -> ".join(repr(f) for f in (e.filename, e.filename2) if f is not None)
+        return f"{where + ': ' if where else ''}{e.strerror}"
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0] if text else 'no message'}"
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser, _ = _parser()
+    parser, subparsers = _parser()
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the subcommand's usage, not the top level's
+        subparsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = argv
     args.cache = compilation_cache(getattr(args, "cache", False))[1]
-    args.interrupted = lambda: "interrupted"
+    args.interrupted = lambda: "interrupted"  # run and sweep say where
     try:
         _COMMANDS[args.command](args)
     except ValueError as e:  # invalid configuration or input: one line that says what, no traceback
@@ -545,6 +641,13 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         print(f"\n{args.interrupted()}", file=sys.stderr)
         raise SystemExit(130) from None
+    except Exception as e:  # a file that cannot be written, a task's own failure: one line too
+        if os.environ.get(TRACEBACK_ENV):
+            raise
+        where = args.interrupted().replace("interrupted", "stopped", 1)
+        print(f"mqd {args.command}: error: {_one_line(e)} ({where}; {TRACEBACK_ENV}=1 shows the traceback)",
+              file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

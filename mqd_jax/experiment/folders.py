@@ -2,7 +2,10 @@
 
 * `lock(folder)`: held while a command writes a folder. A second writer is
   refused with a ValueError; the kernel releases the lock when its process ends,
-  however it ends (`flock`), so a killed run leaves no stale lock.
+  however it ends (`flock`), so a killed run leaves no stale lock, and a process
+  that ends normally removes the lock file. The lock file is never followed: a
+  symbolic link, a file with other hard links or anything but a regular file in
+  its place is refused, so taking the lock cannot write anywhere else.
 * `claim(folder, kind, identity, patterns, overwrite)`: a folder records in
   `mqd.json` (its manifest) what wrote it (`kind`: "run" or "sweep", and the
   identity: config and seed), the provenance, and the name of every file
@@ -10,27 +13,39 @@
   is written). Writing another identity into it is refused with the differing
   fields named, unless `overwrite`, which first removes the files the manifest
   lists, and nothing else: a user's own files in the folder are never removed.
+  A manifest entry must be a plain file name directly in the folder (no path,
+  no `..`, no link): anything else makes the manifest damaged, so no command
+  ever removes or writes a file outside its folder. In a folder with a manifest,
+  `write_atomically` refuses to replace a file the manifest does not list.
 * `write_atomically(path, data)`: a temporary file renamed over `path`, so a
-  crash leaves the old file or the new one; leftovers of killed writers are
-  removed when the folder is next locked.
+  crash leaves the old file or the new one; leftovers of killed writers (the
+  temporary files of names the manifest lists) are removed when the folder is
+  next locked.
 * `write_json` / `read_json`, `write_npz` / `read_npz`: every JSON and npz file
   the library writes carries a SHA-256 checksum of its contents (JSON: the
   key "sha256"; npz: the array "sha256"), verified on every read. A file that
   cannot be read, has no checksum or does not match it raises `Damaged`
-  (a ValueError) naming the file, what is wrong and how to repair it.
+  (a ValueError) naming the file, what is wrong and how to repair it; so does a
+  JSON file with NaN or Infinity literals (not JSON) or nested too deep to read.
+  Infinite values are written as the strings "Infinity" and "-Infinity" (JSON
+  has no number for them), with a warning naming the key that holds them.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import fnmatch
-import glob
 import hashlib
 import io
 import json
+import math
 import os
+import re
+import stat
 import tempfile
+import warnings
 import zipfile
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -64,7 +79,8 @@ def write_atomically(path: str, data: bytes) -> None:
     """Writes `data` to a temporary file and renames it over `path`: a crash leaves the old file or the new one.
 
     In a folder with a manifest (`claim`), the file's name is recorded in it first, so that `--overwrite` knows
-    every file mqd-jax wrote there, a file interrupted halfway included.
+    every file mqd-jax wrote there, a file interrupted halfway included; a file already there that the manifest
+    does not list (a user's) is refused with a ValueError, never replaced.
     """
     _record(os.path.dirname(path) or ".", os.path.basename(path))
     fd, tmp = tempfile.mkstemp(prefix=os.path.basename(path) + ".", suffix=TMP_SUFFIX,
@@ -82,22 +98,28 @@ def write_atomically(path: str, data: bytes) -> None:
         raise
 
 
-def _strict(x: Any) -> Any:
-    """`x` as strict JSON values: numpy arrays and scalars as lists and numbers, NaN as null."""
+def _strict(x: Any, where: str = "", infinite: set[str] | None = None) -> Any:
+    """`x` as strict JSON values: numpy arrays and scalars as lists and numbers, NaN as null, +-inf as the strings
+    "Infinity" and "-Infinity"; the keys (dotted) that hold infinite values are added to `infinite`."""
     if isinstance(x, dict):
-        return {k: _strict(v) for k, v in x.items()}
+        return {k: _strict(v, f"{where}.{k}" if where else str(k), infinite) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_strict(v) for v in x]
+        return [_strict(v, where, infinite) for v in x]
     if isinstance(x, np.ndarray):
-        return _strict(x.tolist())
+        return _strict(x.tolist(), where, infinite)
+    x = x.item() if isinstance(x, np.generic) else x
     if isinstance(x, float) and x != x:
         return None
-    return x.item() if isinstance(x, np.generic) else x
+    if isinstance(x, float) and x in (math.inf, -math.inf):
+        if infinite is not None:
+            infinite.add(where or "the value")
+        return "Infinity" if x > 0 else "-Infinity"
+    return x
 
 
-def _as_read(payload: Any) -> Any:
-    """`payload` as JSON reads it back (tuples as lists, NaN as null, keys as strings)."""
-    return json.loads(json.dumps(_strict(payload), allow_nan=False))
+def _as_read(payload: Any, infinite: set[str] | None = None) -> Any:
+    """`payload` as JSON reads it back (tuples as lists, NaN as null, +-inf as strings, keys as strings)."""
+    return json.loads(json.dumps(_strict(payload, infinite=infinite), allow_nan=False))
 
 
 def _json_digest(payload: Any) -> str:
@@ -106,11 +128,24 @@ def _json_digest(payload: Any) -> str:
                           ).hexdigest()
 
 
+class InfiniteValues(UserWarning):
+    """A results file holds infinite values (written as the strings "Infinity" and "-Infinity")."""
+
+
+def _not_json(literal: str) -> Any:
+    """`json.loads`' parse_constant: NaN, Infinity and -Infinity are not JSON (mqd-jax writes none of them)."""
+    raise ValueError(f"the literal {literal} is not JSON")
+
+
 def write_json(path: str, payload: Mapping[str, Any]) -> None:
     """Writes the dict `payload` as strict JSON (NaN as null) with its checksum (key "sha256"), atomically."""
     if CHECKSUM in payload:
         raise ValueError(f"{path!r}: the key {CHECKSUM!r} is the file's checksum; give the payload another key")
-    data = _as_read(dict(payload))
+    infinite: set[str] = set()
+    data = _as_read(dict(payload), infinite)
+    if infinite:
+        warnings.warn(f"{path}: {', '.join(sorted(infinite))} hold infinite values, written as the strings "
+                      '"Infinity"/"-Infinity" (JSON has no number for them)', InfiniteValues, stacklevel=2)
     write_atomically(path, json.dumps({**data, CHECKSUM: _json_digest(data)}).encode())
 
 
@@ -118,11 +153,14 @@ def read_json(path: str, repair: str) -> dict[str, Any]:
     """The dict `write_json` wrote to `path`, its checksum verified (and removed).
 
     Raises `Damaged` (naming the file, what is wrong and `repair`, the way to repair it) if the file cannot be read
-    or parsed, is not a dict, carries no checksum or does not match it.
+    or parsed (NaN and Infinity literals are not JSON; nesting too deep to read), is not a dict, carries no checksum
+    or does not match it.
     """
     try:
         with open(path, "rb") as f:
-            data = json.loads(f.read())
+            data = json.loads(f.read(), parse_constant=_not_json)
+    except RecursionError as e:
+        raise Damaged(path, "cannot be read (nested too deep)", repair) from e
     except (OSError, ValueError) as e:  # ValueError: JSONDecodeError and UnicodeDecodeError
         raise Damaged(path, f"cannot be read ({type(e).__name__}: {e})", repair) from e
     if not (isinstance(data, dict) and isinstance(data.get(CHECKSUM), str)):
@@ -172,35 +210,82 @@ def read_npz(path: str, repair: str) -> dict[str, np.ndarray]:
 def _make_folder(folder: str, create: bool) -> None:
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ValueError(f"{folder!r} is a file, not a folder: give another --out")
+    if os.path.islink(folder) and not os.path.exists(folder):
+        raise ValueError(f"{folder!r} is a symbolic link to nothing: give another --out, or make the folder it "
+                         "points to")
     if not create and not os.path.isdir(folder):
-        raise ValueError(f"{folder!r} does not exist: give the folder a `mqd sweep` or `mqd run` wrote")
+        raise ValueError(f"{folder!r} does not exist: give a folder that `mqd sweep` wrote")
     os.makedirs(folder, exist_ok=True)
+
+
+def _open_lock(path: str) -> int:
+    """The lock file `path`, opened (created if missing) and locked: never through a link, only a regular file of
+    one name. Raises ValueError if another process holds it or the path is not such a file."""
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644)
+        except OSError as e:
+            if e.errno != errno.ELOOP:
+                raise
+            raise ValueError(f"{path!r} is a symbolic link, not mqd-jax's lock file (mqd-jax never follows it): "
+                             "remove it") from None
+        opened = os.fstat(fd)
+        if not stat.S_ISREG(opened.st_mode) or opened.st_nlink != 1:
+            os.close(fd)
+            what = "a file with other hard links" if stat.S_ISREG(opened.st_mode) else "not a regular file"
+            raise ValueError(f"{path!r} is not mqd-jax's lock file ({what}): remove it")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise ValueError(f"{os.path.dirname(path)!r} is being written by another mqd process (pid {holder}): "
+                             "wait for it to finish, or write to another folder") from None
+        try:  # a holder that finished removed the file we opened: lock the one the path names now
+            now = os.stat(path, follow_symlinks=False)
+        except FileNotFoundError:
+            now = None
+        if now is not None and (now.st_dev, now.st_ino) == (opened.st_dev, opened.st_ino):
+            return fd
+        os.close(fd)
+
+
+def _leftovers(folder: str) -> list[str]:
+    """The temporary files that killed writers left in `folder`: those of the names its manifest lists (and of
+    the manifest itself); [] for a folder without a sound manifest (nothing there is known to be ours)."""
+    try:
+        saved = _manifest(folder)
+    except Damaged:
+        saved = None
+    if saved is None:
+        return []
+    ours = {MANIFEST, *saved["written"]}
+    made = re.compile(r"(.+)\.[A-Za-z0-9_]{8}" + re.escape(TMP_SUFFIX))  # tempfile.mkstemp's names
+    return sorted(os.path.join(folder, n) for n in os.listdir(folder)
+                  if (m := made.fullmatch(n)) and m.group(1) in ours)
 
 
 @contextlib.contextmanager
 def lock(folder: str, create: bool = True) -> Iterator[list[str]]:
     """Holds `folder`'s write lock (creating the folder if `create`, else refusing a missing one); yields the
-    leftover temporary files it removed.
+    leftover temporary files of killed writers it removed. The lock file is removed when the lock is released.
 
-    Raises ValueError if another process holds it, or if the folder is missing and not `create`.
+    Raises ValueError if another process holds it, if the folder is missing and not `create`, or if the lock
+    file's path is anything but a regular file (a link is never followed).
     """
     _make_folder(folder, create)
     path = os.path.join(folder, LOCK)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _open_lock(path)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
-            raise ValueError(f"{folder!r} is being written by another mqd process (pid {holder}): wait for it to "
-                             "finish, or write to another folder") from None
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
-        leftovers = sorted(glob.glob(os.path.join(glob.escape(folder), "*" + TMP_SUFFIX)))
+        leftovers = _leftovers(folder)
         for leftover in leftovers:  # no other writer can be writing them: we hold the lock
             os.remove(leftover)
         yield leftovers
     finally:
+        with contextlib.suppress(OSError):  # still ours (we hold its lock): nobody else can be using it
+            os.remove(path)
         os.close(fd)
 
 
@@ -229,26 +314,76 @@ def set_aside(paths: Sequence[str]) -> list[str]:
     return moved
 
 
+def _plain_name(name: Any) -> bool:
+    """Whether `name` is a plain file name: a string naming a file directly in a folder (no path, no `..`)."""
+    return (isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and os.sep not in name
+            and "\0" not in name and (os.altsep is None or os.altsep not in name))
+
+
 def _manifest(folder: str) -> dict[str, Any] | None:
-    """The manifest of `folder` (None if it has none); raises `Damaged` for a damaged one."""
+    """The manifest of `folder` (None if it has none); raises `Damaged` for a damaged one, and for one that names
+    anything but plain file names of the folder's regular files (a path, `..`, a folder or a link)."""
     path = os.path.join(folder, MANIFEST)
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         return None
-    saved = read_json(path, "pass --overwrite to replace the folder's results (only files mqd-jax wrote are "
-                            "removed), or write to another folder")
+    repair = ("pass --overwrite to replace the folder's results (only files mqd-jax recognisably wrote are "
+              "removed), or write to another folder")
+    saved = read_json(path, repair)
     if not (isinstance(saved.get("identity"), dict) and isinstance(saved.get("written"), list)):
         raise Damaged(path, "is not an mqd-jax manifest", "remove it, or write to another folder")
+    for name in saved["written"]:
+        if not _plain_name(name) or name in (MANIFEST, LOCK):
+            raise Damaged(path, f"lists {name!r}, which is not a plain file name of the folder", repair)
+        full = os.path.join(folder, name)
+        if os.path.lexists(full) and (os.path.islink(full) or not os.path.isfile(full)):
+            raise Damaged(path, f"lists {name!r}, which is {'a link' if os.path.islink(full) else 'not a file'} "
+                          "(mqd-jax writes only files)", repair)
     return saved
 
 
 def _record(folder: str, name: str) -> None:
-    """Adds `name` to the files the manifest of `folder` lists as written by mqd-jax (if it has a manifest)."""
+    """Adds `name` to the files the manifest of `folder` lists as written by mqd-jax (if it has a manifest);
+    refuses (ValueError) a file already there that the manifest does not list: it is not ours to replace."""
     if name in (MANIFEST, LOCK):
         return
     saved = _manifest(folder)
     if saved is not None and name not in saved["written"]:
+        if os.path.lexists(os.path.join(folder, name)):
+            raise ValueError(f"{os.path.join(folder, name)!r} is not written by mqd-jax here (not in its manifest "
+                             f"{MANIFEST}), so it is not replaced: move it away, or write to another folder")
         saved["written"].append(name)
         write_json(os.path.join(folder, MANIFEST), saved)
+
+
+def plan(folder: str, planned: Sequence[Mapping[str, Any]]) -> None:
+    """Adds `planned` (what a command is about to write, e.g. a sweep's batches) to the manifest of `folder` (key
+    "planned"; call holding its lock, after `claim`), so that what is missing after an interruption can be named."""
+    saved = _manifest(folder)
+    if saved is None:
+        raise ValueError(f"{folder!r} has no manifest: claim it first")
+    entries = list(saved.get("planned", []))
+    entries += [e for e in _as_read(list(planned)) if e not in entries]
+    if entries != saved.get("planned"):
+        write_json(os.path.join(folder, MANIFEST), {**saved, "planned": entries})
+
+
+def planned(folder: str) -> list[dict[str, Any]]:
+    """What the manifest of `folder` says was planned (`plan`); [] without a sound manifest."""
+    try:
+        saved = _manifest(folder)
+    except Damaged:
+        return []
+    entries = [] if saved is None else saved.get("planned", [])
+    return [e for e in entries if isinstance(e, dict)] if isinstance(entries, list) else []
+
+
+def kind(folder: str) -> str | None:
+    """What wrote `folder`, as its manifest says ("run" or "sweep"); None without a sound manifest."""
+    try:
+        saved = _manifest(folder)
+    except Damaged:
+        return None
+    return None if saved is None else saved.get("kind")
 
 
 def written(folder: str, saved: dict[str, Any] | None = None) -> list[str]:
@@ -256,6 +391,15 @@ def written(folder: str, saved: dict[str, Any] | None = None) -> list[str]:
     gives it; [] without one)."""
     saved = _manifest(folder) if saved is None else saved
     return [] if saved is None else [n for n in saved["written"] if os.path.exists(os.path.join(folder, n))]
+
+
+def remove_written(folder: str, patterns: Sequence[str]) -> list[str]:
+    """Removes the files of `folder` that match the glob `patterns` and that its manifest lists as written by
+    mqd-jax (nothing in a folder without a manifest); returns their paths. A user's file is never removed."""
+    removed = [os.path.join(folder, n) for n in written(folder) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+    for path in removed:
+        os.remove(path)
+    return removed
 
 
 def _carries_provenance(path: str) -> bool:
@@ -305,7 +449,7 @@ def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequenc
     except Damaged as e:
         if not overwrite:
             raise
-        print(f"{e.path}: damaged manifest; --overwrite removes only the files mqd-jax recognisably wrote")
+        print(f"{e}\n--overwrite removes only the files mqd-jax recognisably wrote and writes a new manifest")
         saved = None
     named = _matching(folder, patterns)
     if saved is not None:

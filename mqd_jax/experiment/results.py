@@ -36,6 +36,7 @@ import glob
 import hashlib
 import json
 import os
+import shlex
 from collections.abc import Callable
 from typing import Any
 
@@ -45,12 +46,13 @@ import numpy as np
 from mqd_jax.core import algorithms, coverage, registry
 from mqd_jax.core.config import Config, upgraded
 from mqd_jax.core.run import State, coverage_method, coverage_points, get_task
-from mqd_jax.experiment import checkpoint
+from mqd_jax.experiment import checkpoint, folders
 from mqd_jax.experiment.folders import (
     Damaged,
     differences,
     read_json,
     read_npz,
+    remove_written,
     write_atomically,
     write_json,
     write_npz,
@@ -80,10 +82,11 @@ def files() -> tuple[str, ...]:
     return (*_batch_patterns(), "*_mqd.msgpack", ADAPTATION, *DERIVED)
 
 
-def write_markdown(lines: list[str], path: str) -> None:
-    """Prints a markdown report and writes it to `path` atomically (creating its folder)."""
+def write_markdown(lines: list[str], path: str, show: bool = True) -> None:
+    """Writes a markdown report to `path` atomically (creating its folder), and prints it if `show`."""
     text = "\n".join(lines)
-    print(text)
+    if show:
+        print(text)
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     write_atomically(path, (text + "\n").encode())
 
@@ -110,10 +113,17 @@ def implementation(cfg: Config) -> dict[str, str]:
 
 
 def repair(out: str, stem: str) -> str:
-    """How to repair a damaged batch `stem` of the folder `out`: the command that re-runs it."""
+    """How to repair a damaged batch `stem` of the folder `out`: the command that re-runs it (shell-quoted)."""
     task, _, algorithm = os.path.basename(stem).rpartition("_")
-    return (f"`mqd sweep --tasks {task} --algorithms {algorithm} --out {out}` with the flags that made it re-runs it "
-            "(a damaged batch is re-run)")
+    command = shlex.join(["mqd", "sweep", "--tasks", task, "--algorithms", algorithm, "--out", out])
+    return f"`{command}` with the flags that made it re-runs it (a damaged batch is re-run)"
+
+
+def missing(out: str) -> list[tuple[str, str]]:
+    """(task, algorithm) of each batch a `mqd sweep` planned in `out` (its manifest) that is not there."""
+    return [(e["task"], e["algorithm"]) for e in folders.planned(out)
+            if isinstance(e.get("task"), str) and isinstance(e.get("algorithm"), str)
+            and not os.path.exists(_stem(out, e["task"], e["algorithm"]) + ".json")]
 
 
 def _read_batch(out: str, stem: str) -> dict[str, Any]:
@@ -177,7 +187,12 @@ def _clashes(batches: list[tuple[str, dict[str, Any]]], cfg: dict[str, Any], key
     implementation (`made_by`) than theirs."""
     found = {}
     for stem, saved in batches:
-        if saved["config"].get("task") != cfg["task"]:
+        task = saved["config"].get("task")
+        if task != cfg["task"] and isinstance(task, str) and isinstance(cfg["task"], str) and \
+                file_name(task) == file_name(cfg["task"]):
+            found[stem] = Clash(False, f"task: saved {task!r}, now {cfg['task']!r}, one file name "
+                                       f"{file_name(task)!r}")
+        if task != cfg["task"]:
             continue
         differ = differences(_comparable(saved["config"], cfg), _comparable(cfg, saved["config"]))
         if saved["keys"] != keys:
@@ -226,11 +241,10 @@ def is_done(batches: list[tuple[str, dict[str, Any]]], out: str, cfg: Config, ke
             and saved["implementation"] == implementation(cfg))
 
 
-def remove_derived(out: str) -> None:
-    """Removes the tables and figures made from `out`'s results (they are remade from the files by `mqd plot`)."""
-    for pattern in DERIVED:
-        for path in glob.glob(os.path.join(glob.escape(out), pattern)):
-            os.remove(path)
+def remove_derived(out: str) -> list[str]:
+    """Removes the tables and figures mqd-jax made from `out`'s results (they are remade from the files by
+    `mqd plot`): those its manifest lists, never a file of the user's named like them; returns their paths."""
+    return remove_written(out, DERIVED)
 
 
 def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: dict[str, np.ndarray],
@@ -401,10 +415,21 @@ def _p_value(by: dict[str, Runs], a: str, b: str) -> str:
     return f"{mann_whitney(by[a].final('coverage'), by[b].final('coverage'))[1]:.2g}"
 
 
-def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
+def failed_runs(r: Runs) -> int:
+    """How many of the runs `r` had every rollout fail (nothing could be inserted: their coverage and quality are
+    those of an empty repertoire, not measurements)."""
+    if "invalid" not in r.metrics:
+        return 0
+    total = r.final("num_evaluations")
+    return int(np.sum((total > 0) & (np.nansum(r.metrics["invalid"], axis=1) >= total)))
+
+
+def tables(runs: dict[str, dict[str, Runs]], missing: list[tuple[str, str]] = ()) -> list[str]:
     """Markdown: Table I (final coverage, the paper's layout, the paper's values beside our runs of its
     algorithms: "mqd-paper", "qd", "random"), the mean-quality
-    table, and per task the evaluations, wall times and two-sided Mann-Whitney U p-values on final coverage."""
+    table, and per task the evaluations, wall times and two-sided Mann-Whitney U p-values on final coverage.
+    Runs whose every rollout failed are marked; `missing` (task, algorithm) batches, planned but not in the folder,
+    are named first."""
     algs = [a for a in algorithms.names() if any(a in r for r in runs.values())]
     seeds = sorted({len(r.keys) for by in runs.values() for r in by.values()})
 
@@ -414,19 +439,26 @@ def tables(runs: dict[str, dict[str, Runs]]) -> list[str]:
     def row(*columns: str) -> str:
         return "| " + " | ".join(columns) + " |"
 
+    def failed(r: Runs) -> str:
+        n = failed_runs(r)
+        return f" [every rollout failed in {n} of {len(r.keys)} runs]" if n else ""
+
     def coverage(task: str, a: str, r: Runs) -> str:
         # The paper's value only beside runs of its algorithms made with its settings (Table II).
         paper = (get_task(r.cfg).paper_coverage.get(PAPER_ALGORITHM[a])
                  if a in PAPER_ALGORITHM and r.cfg == Config.paper(task, algorithm=a) else None)
-        return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "")
+        return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "") + failed(r)
 
     head = [row("task", *(NAMES[a] for a in algs)), "|---" * (len(algs) + 1) + "|"]
-    lines = [f"Seeds per task: {', '.join(map(str, seeds))}; mean +- std over seeds.", "",
+    absent = [f"Missing: {', '.join(f'{t} {NAMES.get(a, a)}' for t, a in missing)}: planned by `mqd sweep` in "
+              "this folder but not in it (the sweep was interrupted or failed there; the same command runs them)",
+              ""] if missing else []
+    lines = [*absent, f"Seeds per task: {', '.join(map(str, seeds))}; mean +- std over seeds.", "",
              "Table I: final coverage (the paper's in brackets, shown only beside runs with Table II's settings, "
              "`Config.paper`)", "", *head]
     lines += [row(t, *cells(t, lambda a, r, t=t: coverage(t, a, r))) for t in runs]
     lines += ["", "Final mean quality", "", *head]
-    lines += [row(t, *cells(t, lambda a, r: _pm(r.final("mean_quality")))) for t in runs]
+    lines += [row(t, *cells(t, lambda a, r: _pm(r.final("mean_quality")) + failed(r))) for t in runs]
     lines += ["", "Standard metrics (pyribs' and QDax's definitions), final, mean +- std over seeds: skills in the "
               "repertoire; QD-score = sum over skills of (quality - the task's lowest quality, `quality_range`); "
               "normalized = QD-score / ((highest - lowest quality) x capacity); max and mean quality; how coverage "

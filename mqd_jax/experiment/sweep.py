@@ -34,7 +34,7 @@ from mqd_jax.core import diagnostics
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import State, get_task, init, run_generations
+from mqd_jax.core.run import State, check_size, get_task, init, run_generations
 
 Metrics = dict[str, np.ndarray]
 
@@ -143,6 +143,7 @@ def run_batch(
     if not (is_int(chunk) and chunk >= 1):
         raise ValueError(f"chunk={chunk!r} is invalid: expected an int >= 1")
     chunk = min(chunk, cfg.max_generations)
+    check_size(cfg, -(-runs // jax.device_count()))  # each device holds its share of the runs
 
     devices = jax.devices()
     padded = -(-runs // len(devices)) * len(devices)
