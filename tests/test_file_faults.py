@@ -1,26 +1,37 @@
 """Every file kind the library writes, under every fault: refused with the path named, or recovered; never
-silently used, never deleted ([trust-2]).
+silently used, never deleted ([trust-2]); nothing outside its folder, nothing of the user's inside it, every
+failure one line ([trust-3], issue 56: real files, real symbolic and hard links, real plugin packages in a
+temporary folder and, where the machine allows mounting, a real read-only or full file system).
 
 One run folder and one sweep folder (with adaptation results) are made once; each case damages one file of a
 copy (truncate, flip a byte, delete, an older mqd-jax's file, a foreign file of the same name) and runs the
 command that reads it.
 """
 
+import contextlib
 import hashlib
 import io
 import json
+import os
+import re
 import shutil
 import struct
+import subprocess
+import sys
+import textwrap
 import zipfile
 
 import numpy as np
 import pytest
 
+from mqd_jax import Config
+from mqd_jax.core import algorithms
 from mqd_jax.experiment import cli, folders, results
 
 RUN_FLAGS = ["--generations", "2", "--population", "8", "--capacity", "64", "--algorithm", "random"]
-SWEEP = ["sweep", "--tasks", "obstacle2d", "--algorithms", "mqd", "qd", "--seeds", "2", "--generations", "2",
-         "--population", "8", "--capacity", "64", "--algorithm-option", "warmup_samples=8", "num_batches=2"]
+TINY_SWEEP = ["sweep", "--tasks", "obstacle2d", "--seeds", "2", "--generations", "2", "--population", "8", "--capacity",
+              "64"]
+SWEEP = [*TINY_SWEEP, "--algorithms", "mqd", "qd", "--algorithm-option", "warmup_samples=8", "num_batches=2"]
 
 
 @pytest.fixture(scope="module")
@@ -190,3 +201,390 @@ def test_a_batch_without_the_machine_names_the_file_and_what_lacks(made, tmp_pat
     folders.write_json(path, saved)
     refused(["plot", str(folder)], f"{path!r} lacks 'machine' (not a complete batch of `mqd sweep`): `mqd sweep "
                                    "--tasks obstacle2d --algorithms qd")
+
+
+# [trust-3]
+
+@pytest.fixture
+def copy(made, tmp_path):
+    """`copy(kind)`: a fresh copy of the made "run" or "sweep" folder (inside a folder of its own)."""
+    def make(kind):
+        shutil.copytree(made / kind, tmp_path / "in" / kind)
+        return tmp_path / "in" / kind
+
+    return make
+
+
+def manifest(folder):
+    return folders.read_json(str(folder / folders.MANIFEST), "")
+
+
+def forge_manifest(folder, **changes):
+    """Rewrites the folder's manifest with `changes`, its checksum recomputed (anyone can: it proves integrity, not
+    origin)."""
+    folders.write_json(str(folder / folders.MANIFEST), {**manifest(folder), **changes})
+
+
+def one_line_error(capsys, argv, match):
+    """Runs `mqd argv`, which must fail with exit status 2 and one line on stderr containing `match`."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert err.count("\n") == 1 and err.startswith(f"mqd {argv[0]}: error:"), err
+    assert match in err, err
+    return err
+
+
+# 1. --overwrite removes only plain file names of the folder that the manifest lists.
+
+@pytest.mark.parametrize("entry", ["../victim.txt", "ABSOLUTE", "sub", 5, "link.json"])
+def test_a_manifest_naming_anything_but_its_own_files_is_damaged_and_nothing_outside_is_removed(
+        copy, tmp_path, capsys, entry):
+    folder = copy("run")
+    victim = tmp_path / "in" / "victim.txt"
+    victim.write_text("precious")
+    (folder / "sub").mkdir()
+    (folder / "link.json").symlink_to(victim)
+    entry = str(victim) if entry == "ABSOLUTE" else entry
+    forge_manifest(folder, written=[*manifest(folder)["written"], entry])
+    err = one_line_error(capsys, ["run", *RUN_FLAGS, "--seed", "1", "--out", str(folder)], f"lists {entry!r}")
+    assert "--overwrite" in err
+    cli.main(["run", *RUN_FLAGS, "--seed", "1", "--out", str(folder), "--overwrite"])  # repairs: a new manifest
+    assert victim.read_text() == "precious" and (folder / "sub").is_dir() and (folder / "link.json").is_symlink()
+    assert manifest(folder)["identity"]["seed"] == 1 and entry not in manifest(folder)["written"]
+
+
+def test_a_sweep_over_a_forged_run_manifest_removes_nothing_outside(copy, tmp_path, capsys):
+    folder = copy("run")
+    victim = tmp_path / "in" / "victim.txt"
+    victim.write_text("precious")
+    forge_manifest(folder, written=[*manifest(folder)["written"], "../victim.txt"])
+    one_line_error(capsys, [*TINY_SWEEP, "--algorithms", "qd", "--out", str(folder)], "'../victim.txt'")
+    cli.main([*TINY_SWEEP, "--algorithms", "qd", "--out", str(folder), "--overwrite"])
+    assert manifest(folder)["kind"] == "sweep" and (folder / "obstacle2d_qd.json").exists()
+    assert victim.read_text() == "precious"
+
+
+# 2. The lock is never followed, and is removed when the command ends.
+
+@pytest.mark.parametrize("link", ["symbolic", "dangling", "hard"])
+def test_the_lock_file_is_never_followed_through_a_link(tmp_path, link):
+    folder, target = tmp_path / "out", tmp_path / "target.txt"
+    folder.mkdir()
+    if link != "dangling":
+        target.write_text("precious")
+    (os.link if link == "hard" else os.symlink)(target, folder / folders.LOCK)
+    with pytest.raises(ValueError, match=r"symbolic link|other hard links"), folders.lock(str(folder)):
+        pass
+    assert (target.read_text() == "precious") if link != "dangling" else not target.exists()
+
+
+def test_the_lock_file_is_removed_when_the_command_ends(tmp_path, capsys):
+    with folders.lock(str(tmp_path)):
+        assert (tmp_path / folders.LOCK).read_text() == f"{os.getpid()}\n"
+    assert not (tmp_path / folders.LOCK).exists()
+    one_line_error(capsys, ["plot", str(tmp_path)], "holds no sweep results")
+    assert os.listdir(tmp_path) == []
+
+
+HOLD_LOCK = textwrap.dedent("""
+    import sys, time
+    from mqd_jax.experiment import folders
+    with folders.lock(sys.argv[1]):
+        print("locked", flush=True)
+        time.sleep(600)
+""")
+
+
+# 3. `mqd render --out` writes a new GIF, or one mqd-jax wrote in a results folder, holding that folder's lock.
+
+def test_render_never_replaces_a_file_it_did_not_write(copy, tmp_path, capsys):
+    pytest.importorskip("matplotlib", reason="drawing a 2D skill needs the plot extra")
+    run, sweep = copy("run"), copy("sweep")
+    before = (sweep / "obstacle2d_qd.json").read_bytes()
+    one_line_error(capsys, ["render", str(run), "--out", str(sweep / "obstacle2d_qd.json")], "expected a new .gif")
+    mine = tmp_path / "mine.gif"
+    mine.write_bytes(b"my own")
+    one_line_error(capsys, ["render", str(run), "--out", str(mine)], "exists")
+    (sweep / "mine.gif").write_bytes(b"my own")
+    one_line_error(capsys, ["render", str(run), "--out", str(sweep / "mine.gif")], "not written by mqd-jax")
+    assert (sweep / "obstacle2d_qd.json").read_bytes() == before and mine.read_bytes() == b"my own"
+    assert (sweep / "mine.gif").read_bytes() == b"my own"
+    cli.main(["render", str(run), "--out", str(sweep / "skill.gif"), "--width", "40", "--height", "40"])
+    assert "skill.gif" in manifest(sweep)["written"]
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(sweep)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        one_line_error(capsys, ["render", str(run), "--out", str(sweep / "other.gif")], "another mqd process")
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not (sweep / "other.gif").exists()
+
+
+# 4. `mqd plot` and `mqd adapt` remove only what the manifest says mqd-jax wrote.
+
+def test_plot_and_adapt_keep_the_users_files_named_like_tables(copy, capsys):
+    folder = copy("sweep")
+    mine = ["fig2_mine.png", "fig3_extra.png", "fig4_x.png", "notes.mqdtmp", "table1.md.mine.mqdtmp"]
+    for name in mine:
+        (folder / name).write_bytes(b"my own")
+    ours = folder / "table1.md.abcd1234.mqdtmp"  # a killed writer's temporary file of a table mqd-jax wrote
+    ours.write_bytes(b"half a table")
+    cli.main(["plot", str(folder)])
+    assert "left by an interrupted writer: removed table1.md.abcd1234.mqdtmp" in capsys.readouterr().out
+    cli.main(["adapt", str(folder), "--goals", "3"])
+    assert all((folder / name).read_bytes() == b"my own" for name in mine) and not ours.exists()
+    assert (folder / "table1.md").exists() and (folder / "fig2_obstacle2d.png").exists()
+    # A table the manifest does not list (the user's, named as mqd-jax names its own) is never replaced.
+    forge_manifest(folder, written=[n for n in manifest(folder)["written"] if n != "table1.md"])
+    (folder / "table1.md").write_text("my table")
+    one_line_error(capsys, ["plot", str(folder)], "table1.md' is not written by mqd-jax here")
+    assert (folder / "table1.md").read_text() == "my table"
+
+
+# 5. Task names that map to one file name are refused; duplicated names run once.
+
+def test_task_names_that_map_to_one_file_name_are_refused(tmp_path, capsys, monkeypatch, registered):
+    package = tmp_path / "plugins" / "pp"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "sub.py").write_text("from mqd_jax.core import registry\n\n\ndef f():\n"
+                                    "    return registry.make('obstacle2d')\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "plugins"))
+    registered("pp.sub.f", lambda: __import__("pp.sub", fromlist=["f"]).f())
+    out = tmp_path / "out"
+    one_line_error(capsys, [*SWEEP, "--tasks", "pp.sub:f", "pp.sub.f", "--out", str(out)],
+                   "both map to the file names pp.sub.f_*")
+    assert not out.exists()
+    # A batch already in the folder under the other name clashes like another config.
+    cfg = Config(task="pp.sub:f")
+    saved = [(str(out / "pp.sub.f_qd"), {"config": {**cfg.to_dict(), "task": "pp.sub.f"}, "keys": [[0, 0]],
+                                         "implementation": results.implementation(cfg)})]
+    clash = results.conflicts(saved, [(cfg, np.zeros((1, 2), np.uint32))])
+    assert "task: saved 'pp.sub.f', now 'pp.sub:f', one file name 'pp.sub.f'" in clash[str(out / "pp.sub.f_qd")].why
+
+
+def test_duplicated_tasks_and_algorithms_run_once(tmp_path, capsys, monkeypatch):
+    batches = []
+    monkeypatch.setattr(cli.sweep, "run_batch", lambda cfg, *a, **k: batches.append(cfg) or (_ for _ in ()).throw(
+        KeyboardInterrupt))
+    with pytest.raises(SystemExit):
+        cli.main([*TINY_SWEEP, "--tasks", "obstacle2d", "obstacle2d", "--algorithms", "qd", "qd", "--out",
+                  str(tmp_path)])
+    assert [(c.task, c.algorithm) for c in batches] == [("obstacle2d", "qd")]
+    assert manifest(tmp_path)["planned"] == [{"task": "obstacle2d", "algorithm": "qd", "seeds": 2}]
+
+
+# 6. JSON with NaN/Infinity literals, or nested too deep, is damaged.
+
+@pytest.mark.parametrize("text", ['{"a": NaN, "sha256": "x"}', '{"a": -Infinity, "sha256": "x"}',
+                                  "[" * 200_000 + "]" * 200_000])
+def test_json_that_is_not_json_is_damaged_naming_the_file(tmp_path, text):
+    path = tmp_path / "mqd.json"
+    path.write_text(text)
+    with pytest.raises(folders.Damaged, match=re.escape(repr(str(path))) + " cannot be read"):
+        folders.read_json(str(path), "repair")
+
+
+def test_a_manifest_with_nan_is_repaired_by_overwrite_and_a_batch_with_nan_is_set_aside(copy, capsys):
+    run = copy("run")
+    text = (run / folders.MANIFEST).read_text()
+    (run / folders.MANIFEST).write_text(text.replace('"kind": "run"', '"kind": NaN'))
+    one_line_error(capsys, ["run", *RUN_FLAGS, "--out", str(run)], "the literal NaN is not JSON")
+    cli.main(["run", *RUN_FLAGS, "--seed", "1", "--out", str(run), "--overwrite"])
+    assert manifest(run)["kind"] == "run"
+    sweep = copy("sweep")
+    batch = sweep / "obstacle2d_qd.json"
+    batch.write_text(batch.read_text().replace('"wall_s": ', '"wall_s": Infinity, "was": '))
+    found, damaged = results.scan(str(sweep))
+    assert str(sweep / "obstacle2d_qd") in damaged and [s for s, _ in found] == [str(sweep / "obstacle2d_mqd")]
+    one_line_error(capsys, ["plot", str(sweep)], "obstacle2d_qd.json' cannot be read")
+
+
+# 7. Results are written whatever the values: infinite metrics as "Infinity", with a warning naming them.
+
+def test_finite_qualities_whose_sum_overflows_are_written_with_a_warning(tmp_path, registered, capsys):
+    import plugin_tasks
+
+    registered("huge", lambda: plugin_tasks.make_reach(scale=2.1e-38))  # qualities down to -3e38: finite
+    with pytest.warns(folders.InfiniteValues, match="metrics.qd_score") as caught:
+        cli.main(["run", "--task", "huge", *RUN_FLAGS, "--out", str(tmp_path)])
+    assert any("metrics.mean_quality" in str(w.message) for w in caught)
+    saved = folders.read_json(str(tmp_path / "metrics.json"), "")
+    qd_score = np.array(saved["metrics"]["qd_score"], dtype=float)
+    assert np.isneginf(qd_score[-1]) and "-Infinity" in saved["metrics"]["qd_score"]
+    assert (tmp_path / "repertoire.npz").exists()
+    assert np.isfinite(folders.read_npz(str(tmp_path / "repertoire.npz"), "")["qualities"]).all()
+
+
+# 8. A batch whose every rollout failed is marked; batches a sweep planned but did not write are named.
+
+def test_tables_mark_runs_whose_every_rollout_failed_and_name_missing_batches(made, copy, capsys):
+    by = results.load_runs(str(made / "sweep"))["obstacle2d"]
+    qd = by["qd"]
+    failed = {**qd.metrics, "invalid": qd.metrics["evaluations"].copy()}  # every rollout of both seeds failed
+    failed["invalid"][0] = 0  # ... but for the first seed's first generation
+    runs = {"obstacle2d": {"mqd": by["mqd"], "qd": results.Runs(qd.cfg, qd.keys, qd.wall_s, qd.machine, failed,
+                                                               qd.count, qd.behaviors)}}
+    text = "\n".join(results.tables(runs))
+    assert text.count("[every rollout failed in 1 of 2 runs]") == 2  # coverage and mean quality
+    assert "Missing" not in text
+    assert manifest(made / "sweep")["planned"] == [{"task": "obstacle2d", "algorithm": a, "seeds": 2}
+                                                   for a in ("mqd", "qd")]
+    folder = copy("sweep")
+    folders.plan(str(folder), [{"task": "obstacle2d", "algorithm": "random", "seeds": 2}])  # an interrupted sweep
+    cli.main(["plot", str(folder)])
+    assert (folder / "table1.md").read_text().startswith("Missing: obstacle2d RANDOM: planned by `mqd sweep`")
+
+
+# 9. Every failure is one line with exit status 2.
+
+@contextlib.contextmanager
+def mounted(where, options):
+    """A tmpfs mounted at `where` with `options` (skips the test where mounting is not allowed)."""
+    where.mkdir(exist_ok=True)
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)], capture_output=True).returncode:
+        pytest.skip("mounting a tmpfs is not allowed here")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def test_a_read_only_folder_is_one_line_for_every_command(copy, tmp_path, capsys):
+    pytest.importorskip("matplotlib", reason="render draws a 2D skill with the plot extra")
+    run, sweep = copy("run"), copy("sweep")
+    with mounted(tmp_path / "ro", "size=16m") as ro:
+        shutil.copytree(run, ro / "run")
+        shutil.copytree(sweep, ro / "sweep")
+        subprocess.run(["mount", "-o", "remount,ro", str(ro)], check=True)
+        for argv in (["run", *RUN_FLAGS, "--out", str(ro / "run"), "--resume"],
+                     ["run", *RUN_FLAGS, "--out", str(ro / "new")], ["plot", str(ro / "sweep")],
+                     ["render", str(ro / "run")]):
+            one_line_error(capsys, argv, "Read-only file system")
+
+
+def test_a_full_disk_is_one_line(tmp_path, capsys):
+    with mounted(tmp_path / "small", "size=64k") as small:
+        one_line_error(capsys, ["run", *RUN_FLAGS, "--out", str(small / "run")], "No space left on device")
+
+
+def test_out_under_a_file_or_a_dangling_link_is_one_line(tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    one_line_error(capsys, ["run", *RUN_FLAGS, "--out", str(tmp_path / "file" / "sub")], "Not a directory")
+    (tmp_path / "link").symlink_to(tmp_path / "nowhere")
+    one_line_error(capsys, ["run", *RUN_FLAGS, "--out", str(tmp_path / "link")], "a symbolic link to nothing")
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_a_task_whose_evaluate_fails_during_the_run_is_one_line(tmp_path, capsys, monkeypatch, registered):
+    import plugin_tasks
+
+    def broken(actions):
+        raise RuntimeError("the robot's cable came loose")
+
+    class Broken(plugin_tasks.Reach):
+        def evaluate(self, actions, key):
+            b, q, v = super().evaluate(actions, key)
+            import jax
+
+            return b, q + jax.pure_callback(broken, jax.ShapeDtypeStruct(q.shape, q.dtype), actions), v
+
+    registered("broken", lambda: Broken((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0)))
+    one_line_error(capsys, ["run", "--task", "broken", *RUN_FLAGS, "--out", str(tmp_path)], "MQD_TRACEBACK=1")
+
+
+@pytest.mark.parametrize(("flags", "match"), [
+    (["--capacity", "100000000"], "would need about"),
+    (["--population", "1000000", "--capacity", "1000000"], "would need about"),
+    (["--k", "64", "--capacity", "64", "--population", "8"], "Config.k=64 is invalid: expected an int < capacity"),
+])
+def test_sizes_that_cannot_fit_are_refused_before_compiling(tmp_path, capsys, flags, match):
+    import time
+
+    began = time.perf_counter()
+    one_line_error(capsys, ["run", *flags, "--out", str(tmp_path)], match)
+    assert time.perf_counter() - began < 10  # not after compiling (74 s for the second)
+
+
+def test_the_sweeps_repair_hints_are_shell_quoted(tmp_path):
+    out = str(tmp_path / "my results")
+    hint = results.repair(out, os.path.join(out, "obstacle2d_qd"))
+    assert f"--out '{out}'" in hint
+
+
+# 11. What a new user meets.
+
+def test_a_mistyped_flag_prints_the_subcommands_usage(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["run", "--gens", "10"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("usage: mqd run") and "unrecognized arguments: --gens 10" in err
+
+
+def test_run_takes_the_tasks_column_and_its_help_says_so(capsys):
+    parser, commands = cli._parser()
+    robot = cli._config(parser.parse_args(["run", "--task", "hexapod_omni"]), defaults=cli._RUN_DEFAULTS)
+    assert robot == Config.paper("hexapod_omni", max_generations=100)
+    flat = cli._config(parser.parse_args(["run"]), defaults=cli._RUN_DEFAULTS)
+    assert flat == Config.paper_2d(max_generations=100)
+    text = " ".join(commands["run"].format_help().split())
+    assert "--max-generations 100 unless given (default: auto)" in text
+    assert "Config.max_generations (default: 100)" in text and "Table II's 2D" in text
+
+
+def test_options_are_checked_in_plain_english():
+    with pytest.raises(ValueError, match="expected an int \\(default 8\\)"):
+        Config(algorithm="mqd", algorithm_options={"pool_factor": 2.5})
+
+
+def test_a_finished_run_is_not_offered_resume(copy, capsys):
+    err = one_line_error(capsys, ["run", *RUN_FLAGS, "--out", str(copy("run"))],
+                         "holds this run, finished (2 generations)")
+    assert "--resume" not in err
+
+
+def test_adapt_and_plot_of_a_run_folder_say_they_take_a_sweeps(copy, capsys):
+    run = copy("run")
+    for command in ("adapt", "plot"):
+        one_line_error(capsys, [command, str(run)], f"is a folder of `mqd run`: `mqd {command}` takes a folder of "
+                                                    "`mqd sweep`")
+
+
+def test_adapt_prints_its_table_not_table_one(copy, capsys):
+    cli.main(["adapt", str(copy("sweep")), "--goals", "3"])
+    out = capsys.readouterr().out
+    assert "Adaptation of final M-QD repertoires" in out and "Table I" not in out
+
+
+def test_a_cached_start_says_it_loads_the_compiled_program(tmp_path, capsys):
+    import jax
+
+    flags = ["run", *RUN_FLAGS, "--generations", "3"]
+    cli.main([*flags, "--out", str(tmp_path / "a")])
+    capsys.readouterr()
+    jax.clear_caches()  # as a new process starts, without compiled programs in memory
+    cli.main([*flags, "--out", str(tmp_path / "b")])
+    out = capsys.readouterr().out
+    assert out.count("loaded the compiled program from the cache in") == 1 and "compiling" not in out
+
+
+# 12. The README tells a new user what they need.
+
+def test_the_readme_lists_every_option_of_every_preset():
+    text = open(os.path.join(os.path.dirname(__file__), "..", "README.md")).read()
+    table = text[text.index("| preset | options (defaults) |"):text.index("The model's options, Table II")]
+    model = {"learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size"}  # listed below it
+    for name in algorithms.names():
+        row = next(line for line in table.splitlines() if line.startswith(f"| `{name.replace('-', '_')}("))
+        assert [o for o in algorithms.options(name) if f"`{o}" not in row and o not in model] == [], name
+
+
+def test_ci_installs_what_the_readme_installs():
+    root = os.path.join(os.path.dirname(__file__), "..")
+    readme, ci = (open(os.path.join(root, p)).read() for p in ("README.md", ".ci/run"))
+    extras = lambda text: {e for group in re.findall(r'pip install (?:-q )?-e "\.\[([^\]]+)\]"', text)  # noqa: E731
+                           for e in group.split(",")}
+    assert extras(readme) >= {"plot", "dev"} and extras(ci) == extras(readme)

@@ -187,10 +187,13 @@ def _random_generations(rng, batch, capacity, pop, dim):
     return reps, jnp.asarray(b.astype(np.float32)), jnp.asarray(q), jnp.asarray(rng.random((batch, pop)) > 0.1)
 
 
-@pytest.mark.parametrize("dim", [1, 3, 8])
-def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim):
+@pytest.mark.parametrize(("dim", "listed"), [(1, 24), (3, 4), (8, 24)])
+def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim, listed, monkeypatch):
     """The sequential rule, kept as the oracle, against the rounds, on 96 random problems per dimension (vmapped):
-    statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1."""
+    statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1. With
+    `listed` = P every candidate's list of close earlier candidates holds them all (the listed rounds); with 4
+    some candidates have more (the rounds on the whole distance matrix)."""
+    monkeypatch.setattr(repertoire, "CLOSE_CANDIDATES", listed)
     capacity, pop = 48, 24
 
     def both(rep, b, q, usable, t_dist):
@@ -211,10 +214,22 @@ def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim):
 
 
 def test_candidates_that_cannot_touch_each_other_settle_in_three_rounds():
-    """Far apart candidates in an empty repertoire: round 1 decides them, round 2 their slots (the count of added
-    skills before each), round 3 finds nothing changed; however many there are."""
-    for pop in (4, 64):
-        rep = Repertoire.empty(128, 1, 2, K + 2)
-        b = jnp.stack([jnp.arange(pop) * 0.5, jnp.zeros(pop)], axis=1)
-        _, ins = _insert(rep, jnp.zeros((pop, 1)), b, jnp.ones(pop), jnp.ones(pop, bool), jnp.float32(0.1))
-        assert int(ins.rounds) == 3 and (np.asarray(ins.slot) == np.arange(pop)).all()
+    """64 far apart candidates in an empty repertoire: round 1 decides them, round 2 their slots (the count of
+    added skills before each), round 3 finds nothing changed."""
+    pop = 64
+    rep = Repertoire.empty(128, 1, 2, K + 2)
+    b = jnp.stack([jnp.arange(pop) * 0.5, jnp.zeros(pop)], axis=1)
+    _, ins = _insert(rep, jnp.zeros((pop, 1)), b, jnp.ones(pop), jnp.ones(pop, bool), jnp.float32(0.1))
+    assert int(ins.rounds) == 3 and (np.asarray(ins.slot) == np.arange(pop)).all()
+
+
+def test_a_minimum_that_matches_no_entry_is_found_again_in_one_reduction():
+    """XLA may fuse a distance matrix into both the minimum and the match with it, rounding one copy otherwise: the
+    minimum then matches no entry (seen under jit: an id of int32 max). Such a row is searched again whole."""
+    values = jnp.array([[0.5, 0.25, 0.25, 1.0], [2.0, 3.0, 1.0, jnp.inf]])
+    ids = jnp.broadcast_to(jnp.arange(4), values.shape)
+    big = jnp.iinfo(jnp.int32).max
+    m, sel = neighbours._matched(values, ids, jnp.array([0.2500001, 1.0]), jnp.array([big, 2]))
+    np.testing.assert_array_equal(m, [0.25, 1.0])  # the first row's own minimum, the second row's as it was
+    np.testing.assert_array_equal(sel, [1, 2])  # ties: the smaller id
+    assert neighbours.min_with_index(jnp.array([[jnp.nan, jnp.nan]]), jnp.arange(2)[None])[1][0] == big

@@ -44,23 +44,38 @@ def min_with_index(values: jax.Array, ids: jax.Array) -> tuple[jax.Array, jax.Ar
     """The smallest entry of each row of values[R, N] and its id (ids[R, N]; ties: the smaller id), in one
     reduction: a minimum found apart from its position could be matched against a recomputed row, rounded
     otherwise (XLA may fuse a distance matrix into each consumer, contracting multiply-adds in one and not the
-    other), and then match none. NaN entries are passed over; a row without a number gives (inf, int32 max)."""
+    other), and then match none. NaN entries are passed over; a row without a number gives (inf, int32 max).
+    Slower on a CPU than a minimum and a match (a variadic reduction)."""
     def smaller(a: tuple[jax.Array, jax.Array], b: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         take_a = (a[0] < b[0]) | ((a[0] == b[0]) & (a[1] < b[1])) | jnp.isnan(b[0])
         return jnp.where(take_a, a[0], b[0]), jnp.where(take_a, a[1], b[1])
 
     init = (jnp.array(jnp.inf, values.dtype), jnp.array(jnp.iinfo(jnp.int32).max, jnp.int32))
-    return jax.lax.reduce((values, ids.astype(jnp.int32)), init, smaller, (1,))
+    return jax.lax.reduce((values, jnp.broadcast_to(ids, values.shape).astype(jnp.int32)), init, smaller, (1,))
+
+
+def _matched(values: jax.Array, ids: jax.Array, m: jax.Array, sel: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """`min_with_index` where a row's minimum `m` matched none of its entries (sel: int32 max), else (m, sel)."""
+    exact, found = min_with_index(values, ids)
+    missed = (sel == jnp.iinfo(jnp.int32).max) & jnp.isfinite(m)
+    return jnp.where(missed, exact, m), jnp.where(missed, found, sel)
 
 
 def _passes(values: jax.Array, ids: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
-    """k rounds of min-extraction; ties go to the smaller id. values, ids: [R, N]. Rows of NaN (a NaN query) give
-    NaN distances and id -1."""
-    nan = jnp.isnan(values).all(axis=1)
+    """k rounds of min-extraction; ties go to the smaller id. values, ids: [R, N].
+
+    A minimum, then the smallest id of the entries equal to it; where XLA recomputed a fused input for the match,
+    rounded otherwise, so that a finite minimum matches no entry, that round takes `min_with_index` (rare: the
+    values are then passed whole, computed once).
+    """
+    big = jnp.iinfo(jnp.int32).max
     out_v, out_i = [], []
     for _ in range(k):
-        m, sel = min_with_index(values, ids)
-        out_v.append(jnp.where(nan, jnp.nan, m))
+        m = values.min(axis=1)
+        sel = jnp.where(values == m[:, None], ids, big).min(axis=1)
+        m, sel = batching.rare_cond(((sel == big) & jnp.isfinite(m)).any(), _matched, lambda v, i, m, s: (m, s),
+                                    values, ids, m, sel)
+        out_v.append(m)
         out_i.append(jnp.where(jnp.isfinite(m), sel, -1))
         values = jnp.where(ids == sel[:, None], jnp.inf, values)
     return jnp.stack(out_v, 1), jnp.stack(out_i, 1)

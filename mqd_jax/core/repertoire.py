@@ -202,26 +202,15 @@ def _search_remaining(need_all: jax.Array, removed_at: jax.Array, behaviors: jax
     return tuple(jnp.where(need_all, a, b) for a, b in zip(found, quick, strict=True))
 
 
-def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
-                   d_cand: jax.Array, qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
-    """The sequential rule's outcome (`_sequential_rule`, same arguments), computed in data-parallel rounds.
-
-    Every candidate's step is a function of the outcomes of the candidates before it. A round computes every
-    candidate's step at once from the previous round's outcomes (the first round: from none); the outcomes
-    that did not change are a fixed point, and the only one: the first candidate whose outcome would differ
-    from the sequential rule's sees only correct predecessors, so its step is the sequential one. After round
-    r at least the first r candidates are settled; in practice a generation settles in a few rounds, as only
-    candidates within 2 t_dist of each other (a shared nearest skill, or one nearest the other) and the running
-    count of added skills (slots, a full repertoire) link them. Returns the outcome (`Insertion.slot` is
-    meaningful where the candidate is alive at the end; `rounds`: the rounds taken, the last one the check that
-    nothing changes).
-    """
-    capacity, pop = rep.capacity, d_cand.shape[0]
+def _rounds(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array, cols: jax.Array,
+            dists: jax.Array, qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
+    """`_parallel_rule`'s rounds, given for each candidate the earlier candidates within t_dist of it: cols [P, K]
+    (any order, every such candidate among them) and their squared distances dists [P, K] (inf elsewhere)."""
+    capacity, pop = rep.capacity, behaviors.shape[0]
     t2 = t_dist**2
     cands = jnp.arange(pop, dtype=jnp.int32)
-    before = cands[None, :] < cands[:, None]  # [i, j]: j comes before i
     near_q = rep.qualities[jnp.maximum(near_i, 0)]
-    close = before & (d_cand <= t2)  # the earlier candidates that can be a candidate's nearest skill within t_dist
+    cols = jnp.maximum(cols, 0)
 
     def step(s: Insertion) -> Insertion:
         """Every candidate's step, given the outcomes `s` of the candidates before it."""
@@ -237,14 +226,14 @@ def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, nea
         take = lambda x: jnp.take_along_axis(x, first[:, None], axis=1)[:, 0]  # noqa: E731
         quick = (jnp.where(still_there.any(1), take(near_d), jnp.inf), take(near_i), take(near_q))
         need_all = ~still_there.any(1) & (near_d[:, -1] <= t2)
-
         d_old, slot_old, q_old = batching.rare_cond(need_all.any(), _search_remaining, lambda *a: a[-1], need_all,
                                                     removed_at, behaviors, rep, quick)
         # The nearest skill within t_dist written earlier in the generation, the lowest slot among equally near.
-        alive = close & lives[None] & (killed_at[None] >= cands[:, None])
-        d_row = jnp.where(alive, d_cand, jnp.inf)
+        alive = jnp.isfinite(dists) & lives[cols] & (killed_at[cols] >= cands[:, None])
+        d_row = jnp.where(alive, dists, jnp.inf)
         d_new = d_row.min(axis=1)
-        j_new = jnp.argmin(jnp.where(alive & (d_row == d_new[:, None]), s.slot[None], capacity), axis=1)
+        pick = jnp.argmin(jnp.where(alive & (d_row == d_new[:, None]), s.slot[cols], capacity), axis=1)
+        j_new = jnp.take_along_axis(cols, pick[:, None], axis=1)[:, 0]
         slot_new = s.slot[j_new]
         nearest_is_new = jnp.isfinite(d_new) & ((d_new < d_old) | ((d_new == d_old) & (slot_new < slot_old)))
         j_new = jnp.where(nearest_is_new, j_new, -1)  # a function of the earlier candidates' outcomes only
@@ -274,8 +263,46 @@ def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, nea
     none = jnp.full(pop, -1, jnp.int32)
     start = Insertion(status=jnp.zeros(pop, jnp.int32), slot=jnp.zeros(pop, jnp.int32), alive=jnp.zeros(pop, bool),
                       victim_slot=none, victim_candidate=none, rounds=jnp.int32(0))
-    _, ins = jax.lax.while_loop(changed, lambda c: (c[1], step(c[1])), (start, step(start)))
+    # The first round runs inside the loop too: on the constant start, XLA would fold its reductions at compile
+    # time, element by element (minutes at P = 1024).
+    _, ins = jax.lax.while_loop(changed, lambda c: (c[1], step(c[1])), (start.replace(status=none), start))
     return ins.replace(alive=ins.alive & (_first_at(ins.victim_candidate, pop) == pop))
+
+
+# Earlier candidates within t_dist a candidate's list holds in the parallel rule's rounds; a generation with a
+# candidate that has more works on the whole [P, P] distance matrix (same result, more work per round).
+CLOSE_CANDIDATES = 64
+
+
+def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
+                   d_cand: jax.Array, qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
+    """The sequential rule's outcome (`_sequential_rule`, same arguments), computed in data-parallel rounds.
+
+    Every candidate's step is a function of the outcomes of the candidates before it. A round computes every
+    candidate's step at once from the previous round's outcomes (the first round: from none); the outcomes
+    that did not change are a fixed point, and the only one: the first candidate whose outcome would differ
+    from the sequential rule's sees only correct predecessors, so its step is the sequential one. After round
+    r at least the first r candidates are settled; in practice a generation settles in a few rounds, as only
+    candidates within 2 t_dist of each other (a shared nearest skill, or one nearest the other) and the running
+    count of added skills (slots, a full repertoire) link them. Of the earlier candidates, a step reads only
+    those within t_dist (`CLOSE_CANDIDATES` of them listed once per generation, or all P where a candidate has
+    more), so a round costs O(P (M + CLOSE_CANDIDATES)). Returns the outcome (`Insertion.slot` is meaningful
+    where the candidate is alive at the end; `rounds`: the rounds taken, the last one the check that nothing
+    changes).
+    """
+    pop = d_cand.shape[0]
+    cands = jnp.arange(pop, dtype=jnp.int32)
+    close = (cands[None, :] < cands[:, None]) & (d_cand <= t_dist**2)  # [i, j]: j before i, within t_dist
+    within = jnp.where(close, d_cand, jnp.inf)
+    length = min(CLOSE_CANDIDATES, pop)
+    negated, listed = jax.lax.top_k(-within, length)  # the nearest `length` (any order would do), in one pass
+    listed_d = -negated
+    crowded = (close.sum(axis=1) > length).any()
+    every = jnp.broadcast_to(cands, (pop, pop))
+    return batching.rare_cond(
+        crowded, lambda r, b, nd, ni, _, __, c, d, *rest: _rounds(r, b, nd, ni, c, d, *rest),
+        lambda r, b, nd, ni, c, d, _, __, *rest: _rounds(r, b, nd, ni, c, d, *rest),
+        rep, behaviors, near_d, near_i, listed, listed_d, every, within, qualities, usable, t_dist)
 
 
 def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
@@ -386,8 +413,9 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
     near_d, near_i = _on_prefix(sizes, rep.count, functools.partial(_nearest_before, min(num_near, sizes[0])), slim,
                                 behaviors)
-    ins = _parallel_rule(rep, behaviors, near_d, near_i, neighbours.sq_dists(behaviors, behaviors), qualities, usable,
-                         t_dist)
+    # One buffer of candidate distances, read by every consumer alike (a recomputation could round otherwise).
+    d_cand = jax.lax.optimization_barrier(neighbours.sq_dists(behaviors, behaviors))
+    ins = _parallel_rule(rep, behaviors, near_d, near_i, d_cand, qualities, usable, t_dist)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
     return new.replace(actions=rep.actions.at[written_slots(ins, capacity)].set(actions, mode="drop")), ins

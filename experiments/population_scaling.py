@@ -1,0 +1,58 @@
+"""ms per generation against the population, for this checkout or an older one (it uses only what 0.9 had).
+
+    python experiments/population_scaling.py [--populations 100 1024 4096] [--algorithms qd mqd]
+        [--out results/population_scaling.md]
+    PYTHONPATH=OLD_CHECKOUT:experiments python experiments/population_scaling.py ...   # the same, older code
+
+2D Obstacle, Table II's 2D settings, capacity max(4096, population): a chunk of `--generations`
+generations (one compiled `lax.scan`) from a state grown `--grow` generations, median of `--repeats`
+calls, compile excluded; each population's time and its ratio to the first population's, and each
+algorithm's ratio to the first algorithm's at the same population.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import report
+
+import mqd_jax
+from mqd_jax import Config, init
+from mqd_jax.core.run import run_generations
+
+
+def ms_per_generation(algorithm: str, population: int, args: argparse.Namespace) -> float:
+    cfg = Config.paper_2d(task="obstacle2d", algorithm=algorithm, population_size=population,
+                          capacity=max(4096, population), archive_capacity=max(4096, population),
+                          max_generations=args.grow + args.generations)
+    params = cfg.params()
+    chunk = jax.jit(run_generations, static_argnums=(1, 3))
+    state = jax.block_until_ready(chunk(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)[0])
+    return report.median_ms(lambda: chunk(state, cfg, params, args.generations), args.repeats) / args.generations
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--populations", type=int, nargs="+", default=[100, 1024, 4096])
+    parser.add_argument("--algorithms", nargs="+", default=["qd", "mqd"])
+    parser.add_argument("--grow", type=int, default=20)
+    parser.add_argument("--generations", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="results/population_scaling.md")
+    args = parser.parse_args()
+    lines = [f"mqd-jax {mqd_jax.__version__}; {report.machine()}; 2D Obstacle, a chunk of {args.generations} "
+             f"generations after {args.grow}, median of {args.repeats}, compile excluded.", "",
+             "| algorithm | population | ms / generation | vs first population | vs first algorithm |",
+             "|---|---|---|---|---|"]
+    found: dict[tuple[str, int], float] = {}
+    for algorithm in args.algorithms:
+        for population in args.populations:
+            ms = found[algorithm, population] = ms_per_generation(algorithm, population, args)
+            lines.append(f"| {algorithm} | {population} | {ms:.2f} | {ms / found[algorithm, args.populations[0]]:.1f} "
+                         f"| {ms / found[args.algorithms[0], population]:.1f} |")
+            report.write(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()
