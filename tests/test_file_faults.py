@@ -563,6 +563,7 @@ def test_a_cached_start_says_it_loads_the_compiled_program(tmp_path, capsys):
     import jax
 
     flags = ["run", *RUN_FLAGS, "--generations", "3"]
+    jax.clear_caches()  # compiled (or loaded) here, so that the persistent cache holds it whatever ran before
     cli.main([*flags, "--out", str(tmp_path / "a")])
     capsys.readouterr()
     jax.clear_caches()  # as a new process starts, without compiled programs in memory
