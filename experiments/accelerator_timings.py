@@ -30,8 +30,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
+from population_scaling import grown
 
-from mqd_jax import Config, init
+from mqd_jax import Config
 from mqd_jax.core import repertoire
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.run import (
@@ -41,20 +42,14 @@ from mqd_jax.core.run import (
     _usable,
     ask,
     get_task,
-    run_generations,
 )
 from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 
 def population_row(algorithm: str, population: int, args: argparse.Namespace) -> dict[str, float]:
     """{"generation": ms, "rounds": mean insertion rounds, stage: ms} of `algorithm` at `population`."""
-    cfg = Config.paper_2d(task="obstacle2d", algorithm=algorithm, population_size=population,
-                          capacity=max(4096, population), archive_capacity=max(4096, population),
-                          max_generations=args.grow + args.generations)
-    params, task = cfg.params(), get_task(cfg)
-    chunk = jax.jit(run_generations, static_argnums=(1, 3))
-    state, _ = chunk(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)
-    state = jax.block_until_ready(state)
+    cfg, params, chunk, state = grown(algorithm, population, args)
+    task = get_task(cfg)
     _, metrics = chunk(state, cfg, params, args.generations)
     found = {"generation": report.median_ms(lambda: chunk(state, cfg, params, args.generations), args.repeats)
              / args.generations, "rounds": float(np.mean(np.asarray(metrics["insertion_rounds"])))}

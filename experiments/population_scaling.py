@@ -13,6 +13,8 @@ algorithm's ratio to the first algorithm's at the same population.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import report
@@ -22,13 +24,20 @@ from mqd_jax import Config, init
 from mqd_jax.core.run import run_generations
 
 
-def ms_per_generation(algorithm: str, population: int, args: argparse.Namespace) -> float:
+def grown(algorithm: str, population: int, args: argparse.Namespace) -> tuple[Config, Any, Callable, Any]:
+    """(config, params, the jitted chunk `(state, cfg, params, num) -> (state, metrics)`, a state grown
+    `args.grow` generations) of 2D Obstacle at `population`, capacity max(4096, population)."""
     cfg = Config.paper_2d(task="obstacle2d", algorithm=algorithm, population_size=population,
                           capacity=max(4096, population), archive_capacity=max(4096, population),
                           max_generations=args.grow + args.generations)
     params = cfg.params()
     chunk = jax.jit(run_generations, static_argnums=(1, 3))
     state = jax.block_until_ready(chunk(init(jax.random.PRNGKey(0), cfg), cfg, params, args.grow)[0])
+    return cfg, params, chunk, state
+
+
+def ms_per_generation(algorithm: str, population: int, args: argparse.Namespace) -> float:
+    cfg, params, chunk, state = grown(algorithm, population, args)
     return report.median_ms(lambda: chunk(state, cfg, params, args.generations), args.repeats) / args.generations
 
 
