@@ -20,6 +20,16 @@ def _insert_fn(rep, actions, behaviors, qualities, ok, t_dist):
 
 
 _insert = jax.jit(_insert_fn)
+_banded = jax.jit(lambda *args: _insert_fn(*args))  # a function of its own: jit caches traces per function
+
+
+def _insert_banded(*args):
+    """`_insert` with the nearest skills searched in bands (`repertoire._near_within`) however small the sizes."""
+    saved, repertoire.BRUTE_FORCE_PAIRS = repertoire.BRUTE_FORCE_PAIRS, 0
+    try:
+        return _banded(*args)
+    finally:
+        repertoire.BRUTE_FORCE_PAIRS = saved
 
 
 def _batches(draw_seed: int, generations: int, pop: int, spread: float, lattice: bool = False):
@@ -41,16 +51,18 @@ def _batches(draw_seed: int, generations: int, pop: int, spread: float, lattice:
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10_000), capacity=st.sampled_from([6, 40]), spread=st.sampled_from([0.05, 0.2]),
-       lattice=st.booleans())
-def test_insertion_matches_sequential_reference(seed, capacity, spread, lattice):
-    """The oracle scans the slots in order: of equally near skills, the lowest slot is the nearest."""
+       lattice=st.booleans(), banded=st.booleans())
+def test_insertion_matches_sequential_reference(seed, capacity, spread, lattice, banded):
+    """The oracle scans the slots in order: of equally near skills, the lowest slot is the nearest. `banded`: the
+    nearest skills are searched in bands along an axis, not among all skills."""
     pop, t_dist = 12, 0.1
     rep = Repertoire.empty(capacity, 1, 2, K + 2)
     ref_b, ref_q = np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
     for b, q, ok in _batches(seed, 4, pop, spread, lattice):
         actions = jnp.asarray(np.arange(pop, dtype=np.float32)[:, None])
         before_b, before_q = np.asarray(rep.behaviors), np.asarray(rep.qualities)
-        rep, ins = _insert(rep, actions, jnp.asarray(b), jnp.asarray(q), jnp.asarray(ok), jnp.float32(t_dist))
+        rep, ins = (_insert_banded if banded else _insert)(rep, actions, jnp.asarray(b), jnp.asarray(q),
+                                                          jnp.asarray(ok), jnp.float32(t_dist))
         ref_b, ref_q, status, archived = reference.insert(ref_b, ref_q, b, q, ok, t_dist, capacity)
         n = int(rep.count)
         assert [NAMES[int(s)] for s in ins.status] == status
@@ -159,8 +171,10 @@ def test_vmapped_insertion_equals_member_by_member():
         for s in range(len(spreads)):
             singles[s], want = _insert(singles[s], actions[s], b[s], q[s], ok[s], t_dist)
             got = jax.tree.map(lambda x, s=s: x[s], (batch, ins))
-            for name in ("status", "slot", "alive", "victim_slot", "victim_candidate"):
+            for name in ("status", "alive", "victim_slot", "victim_candidate"):
                 np.testing.assert_array_equal(getattr(got[1], name), getattr(want, name), err_msg=name)
+            np.testing.assert_array_equal(repertoire.written_slots(got[1], capacity),
+                                          repertoire.written_slots(want, capacity))
             for name in ("actions", "behaviors", "qualities", "valid", "count"):
                 np.testing.assert_array_equal(getattr(got[0], name), getattr(singles[s], name), err_msg=name)
             np.testing.assert_array_equal(got[0].neighbours.index, singles[s].neighbours.index)
@@ -187,19 +201,18 @@ def _random_generations(rng, batch, capacity, pop, dim):
     return reps, jnp.asarray(b.astype(np.float32)), jnp.asarray(q), jnp.asarray(rng.random((batch, pop)) > 0.1)
 
 
-@pytest.mark.parametrize(("dim", "listed"), [(1, 24), (3, 4), (8, 24)])
-def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim, listed, monkeypatch):
+@pytest.mark.parametrize(("dim", "window"), [(1, 64), (3, 1), (8, 64)])
+def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim, window, monkeypatch):
     """The sequential rule, kept as the oracle, against the rounds, on 96 random problems per dimension (vmapped):
-    statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1. With
-    `listed` = P every candidate's list of close earlier candidates holds them all (the listed rounds); with 4
-    some candidates have more (the rounds on the whole distance matrix)."""
-    monkeypatch.setattr(repertoire, "CLOSE_CANDIDATES", listed)
+    statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1. The
+    rounds read each candidate's band of candidates along one axis, in windows of `window` * 4^j places (or P)."""
+    monkeypatch.setattr(repertoire, "MIN_WINDOW", window)
     capacity, pop = 48, 24
 
     def both(rep, b, q, usable, t_dist):
         near_d, near_i = repertoire._nearest_before(2, capacity, rep, b)
-        args = (rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist)
-        return repertoire._sequential_rule(*args), repertoire._parallel_rule(*args)
+        return (repertoire._sequential_rule(rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist),
+                repertoire._parallel_rule(rep, b, near_d, near_i, q, usable, t_dist))
 
     rng = np.random.default_rng(dim)
     reps, b, q, usable = _random_generations(rng, 96, capacity, pop, dim)
@@ -233,3 +246,27 @@ def test_a_minimum_that_matches_no_entry_is_found_again_in_one_reduction():
     np.testing.assert_array_equal(m, [0.25, 1.0])  # the first row's own minimum, the second row's as it was
     np.testing.assert_array_equal(sel, [1, 2])  # ties: the smaller id
     assert neighbours.min_with_index(jnp.array([[jnp.nan, jnp.nan]]), jnp.arange(2)[None])[1][0] == big
+
+
+@pytest.mark.parametrize("dim", [1, 2, 8])
+def test_a_band_holds_every_row_within_t_dist_and_the_axis_is_the_narrowest(dim):
+    """Brute force: every row within t_dist of a query (distances as `sq_dists` rounds them) lies in its band, on
+    points far from the origin (rounding) with coordinates exactly t_dist apart, and the chosen axis is the one
+    whose widest band is narrowest where one axis is clearly so."""
+    rng = np.random.default_rng(dim)
+    t_dist = 0.125
+    lattice = 1000.0 + t_dist * rng.integers(0, 6, (300, dim))
+    points = (lattice + rng.choice([0.0, 1e-4], lattice.shape)).astype(np.float32)
+    ok = rng.random(300) > 0.1
+    rows = jnp.asarray(points)
+    axis = repertoire._axis(rows, jnp.asarray(ok), jnp.float32(t_dist))
+    order, lo, hi, widest = repertoire._bands(rows[:50], jnp.asarray(ok[:50]), rows, jnp.asarray(ok), axis,
+                                              jnp.float32(t_dist))
+    d = np.asarray(neighbours.sq_dists(rows[:50], rows))
+    for i in np.flatnonzero(ok[:50]):
+        band = set(np.asarray(order)[int(lo[i]):int(hi[i])].tolist())
+        assert set(np.flatnonzero(ok & (d[i] <= np.float32(t_dist) ** 2)).tolist()) <= band
+        assert int(hi[i]) - int(lo[i]) <= int(widest)
+    if dim > 1:  # spread one axis 40 times wider: its bands are the narrowest
+        spread = rows.at[:, dim - 1].multiply(40.0)
+        assert int(repertoire._axis(spread, jnp.asarray(ok), jnp.float32(t_dist))) == dim - 1

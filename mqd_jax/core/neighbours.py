@@ -61,8 +61,9 @@ def _matched(values: jax.Array, ids: jax.Array, m: jax.Array, sel: jax.Array) ->
     return jnp.where(missed, exact, m), jnp.where(missed, found, sel)
 
 
-def _passes(values: jax.Array, ids: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
-    """k rounds of min-extraction; ties go to the smaller id. values, ids: [R, N].
+def k_smallest_of(values: jax.Array, ids: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
+    """The k smallest entries of each row of values[R, N], ascending, with their ids[R, N] (distinct within a
+    row), in k rounds of min-extraction; ties go to the smaller id; missing entries (inf) get id -1.
 
     A minimum, then the smallest id of the entries equal to it; where XLA recomputed a fused input for the match,
     rounded otherwise, so that a finite minimum matches no entry, that round takes `min_with_index` (rare: the
@@ -91,17 +92,17 @@ def k_smallest(values: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:
     r, n = values.shape
     cols = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (r, n))
     if n <= 4 * k * _BLOCK:
-        return _passes(values, cols, k)
+        return k_smallest_of(values, cols, k)
     pad = -n % _BLOCK
     values = jnp.pad(values, ((0, 0), (0, pad)), constant_values=jnp.inf)
     blocks = values.reshape(r, -1, _BLOCK)
     block_ids = jnp.broadcast_to(jnp.arange(blocks.shape[1], dtype=jnp.int32), blocks.shape[:2])
-    _, chosen = _passes(blocks.min(axis=2), block_ids, k)
+    _, chosen = k_smallest_of(blocks.min(axis=2), block_ids, k)
     # Rows with fewer than k finite blocks get -1: read block 0, keep none of it.
     picked = jnp.take_along_axis(blocks, jnp.maximum(chosen, 0)[:, :, None], axis=1)
     picked = jnp.where(chosen[:, :, None] >= 0, picked, jnp.inf).reshape(r, -1)
     picked_cols = (chosen[:, :, None] * _BLOCK + jnp.arange(_BLOCK)).reshape(r, -1)
-    return _passes(picked, picked_cols.astype(jnp.int32), k)
+    return k_smallest_of(picked, picked_cols.astype(jnp.int32), k)
 
 
 @pytree.dataclass
@@ -155,7 +156,7 @@ def _merge(rows: jax.Array, lists: NeighbourLists, behaviors: jax.Array, new_slo
     d = jnp.where((new_slots < capacity)[None] & (d < lists.radius[rows][:, None]), d, jnp.inf)
     v = jnp.concatenate([lists.sq_dist[rows], d], axis=1)
     i = jnp.concatenate([lists.index[rows], jnp.broadcast_to(new_slots, d.shape)], 1)
-    v, i = _passes(v, jnp.where(jnp.isfinite(v), i, jnp.iinfo(jnp.int32).max), lists.length + 1)
+    v, i = k_smallest_of(v, jnp.where(jnp.isfinite(v), i, jnp.iinfo(jnp.int32).max), lists.length + 1)
     return NeighbourLists(
         sq_dist=lists.sq_dist.at[rows].set(v[:, :-1], mode="drop"),
         index=lists.index.at[rows].set(i[:, :-1], mode="drop"),

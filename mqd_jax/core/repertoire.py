@@ -269,14 +269,88 @@ def _rounds(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: ja
     return ins.replace(alive=ins.alive & (_first_at(ins.victim_candidate, pop) == pop))
 
 
-# Earlier candidates within t_dist a candidate's list holds in the parallel rule's rounds; a generation with a
-# candidate that has more works on the whole [P, P] distance matrix (same result, more work per round).
-CLOSE_CANDIDATES = 64
+# The narrowest window of the band searches (`_bands`); wider ones are 4x, 16x, ... it, up to the whole set.
+MIN_WINDOW = 64
+
+
+def _window_sizes(size: int) -> list[int]:
+    """The window lengths a band search over `size` sorted rows chooses from, ascending: MIN_WINDOW * 4^j, and size."""
+    return sorted({min(MIN_WINDOW * 4**j, size) for j in range(max(size.bit_length() // 2, 1))} | {size})
+
+
+def _axis(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
+    """The behavior axis along which a band 2 t_dist wide holds the fewest of points [P, d] (those ok [P]) at
+    most, estimated without sorting: per axis, P bins at least t_dist wide, and the most any 3 adjacent hold."""
+    pop, dim = points.shape
+    low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
+    spread = jnp.where(ok[:, None], points, -jnp.inf).max(axis=0) - low
+    bin_width = jnp.maximum(t_dist, spread / pop)
+    bins = jnp.clip(jnp.where(ok[:, None], (points - low) / bin_width, 0.0), 0, pop - 1).astype(jnp.int32)
+    counts = jnp.zeros((dim, pop + 2), jnp.int32).at[jnp.arange(dim), bins + 1].add(ok[:, None].astype(jnp.int32))
+    return jnp.argmin((counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]).max(axis=1)).astype(jnp.int32)
+
+
+def _searched(behaviors: jax.Array, usable: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The candidates a band search looks for (usable, finite behaviors) [P], and the axis of its bands."""
+    ok = usable & jnp.isfinite(behaviors).all(axis=1)
+    return ok, _axis(behaviors, ok, t_dist)
+
+
+def _bands(queries: jax.Array, query_ok: jax.Array, rows: jax.Array, row_ok: jax.Array, axis: jax.Array,
+           t_dist: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Each query's band of rows: the rows whose coordinate on `axis` is within t_dist of the query's (with a
+    margin for rounding), and so every row within t_dist of it. queries [P, d] (query_ok [P]), rows [N, d]
+    (row_ok [N]; the others sort last, in no band). Returns (the rows in order along the axis [N], the first
+    and the end sorted place of each band [P] (empty for a query not ok), the widest band's length)."""
+    values = jnp.where(row_ok, jnp.take(rows, axis, axis=1), jnp.inf)
+    coordinate = jnp.take(queries, axis, axis=1)
+    scale = jnp.maximum(jnp.where(row_ok, jnp.abs(values), 0.0).max(),
+                        jnp.where(query_ok, jnp.abs(coordinate), 0.0).max())
+    half = t_dist * 1.001 + 8 * jnp.finfo(jnp.float32).eps * scale
+    order = jnp.argsort(values, stable=True)
+    ordered = values[order]
+    lo = jnp.searchsorted(ordered, coordinate - half, "left")
+    hi = jnp.where(query_ok, jnp.searchsorted(ordered, coordinate + half, "right"), lo)
+    return order, lo, hi, (hi - lo).max()
+
+
+def _in_band(width: int, queries: jax.Array, rows: jax.Array, order: jax.Array, lo: jax.Array, hi: jax.Array
+             ) -> tuple[jax.Array, jax.Array]:
+    """(squared distances [P, width] of the rows in each query's band to the query, inf past the band's end; the
+    rows' ids [P, width]), the band read `width` sorted places from its start (width >= the widest band)."""
+    places = lo[:, None] + jnp.arange(width)
+    ids = order[jnp.minimum(places, order.shape[0] - 1)]
+    d = sum((queries[:, None, k] - rows[ids, k]) ** 2 for k in range(queries.shape[1]))
+    return jnp.where(places < hi[:, None], d, jnp.inf), ids
+
+
+# Below this many candidate-skill pairs, `_near_within` reads every skill (no sorting, which a CPU does slowly).
+BRUTE_FORCE_PAIRS = 1 << 18
+
+
+def _near_within(num_near: int, min_prefix: int, rep: Repertoire, behaviors: jax.Array, ok: jax.Array,
+                 axis: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """[P, M] squared distances and slots of each candidate's M nearest skills, ascending, ties to the lower slot
+    (inf and -1 where there are fewer), among the skills in its band along `axis` (`_bands`; every skill if the
+    repertoire's prefix is small). Every skill within t_dist is in the band, so the entries within t_dist are
+    those of the M nearest of all skills; what lies beyond t_dist does not change the insertion rule's outcome
+    (a skill farther than t_dist is as good as none). ok [P]: the candidates to search for."""
+    def search(size: int, rep: Repertoire, behaviors: jax.Array, ok: jax.Array, axis: jax.Array,
+               t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
+        if behaviors.shape[0] * size <= BRUTE_FORCE_PAIRS:
+            return _nearest_before(num_near, size, rep, behaviors)
+        part = _prefix(rep, size, rep.capacity)
+        order, lo, hi, widest = _bands(behaviors, ok, part.behaviors, part.valid, axis, t_dist)
+        return _on_prefix(_window_sizes(size), widest,
+                          lambda width, *a: neighbours.k_smallest_of(*_in_band(width, *a), num_near),
+                          behaviors, part.behaviors, order, lo, hi)
+
+    return _on_prefix(_prefix_sizes(rep.capacity, min_prefix), rep.count, search, rep, behaviors, ok, axis, t_dist)
 
 
 def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
-                   d_cand: jax.Array, qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
-    """The sequential rule's outcome (`_sequential_rule`, same arguments), computed in data-parallel rounds.
+                   qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
+    """The sequential rule's outcome (`_sequential_rule`'s arguments but d_cand), computed in data-parallel rounds.
 
     Every candidate's step is a function of the outcomes of the candidates before it. A round computes every
     candidate's step at once from the previous round's outcomes (the first round: from none); the outcomes
@@ -285,24 +359,26 @@ def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, nea
     r at least the first r candidates are settled; in practice a generation settles in a few rounds, as only
     candidates within 2 t_dist of each other (a shared nearest skill, or one nearest the other) and the running
     count of added skills (slots, a full repertoire) link them. Of the earlier candidates, a step reads only
-    those within t_dist (`CLOSE_CANDIDATES` of them listed once per generation, or all P where a candidate has
-    more), so a round costs O(P (M + CLOSE_CANDIDATES)). Returns the outcome (`Insertion.slot` is meaningful
-    where the candidate is alive at the end; `rounds`: the rounds taken, the last one the check that nothing
-    changes).
+    those within t_dist, found once per generation in bands along one behavior axis (`_bands`, `_axis`): W
+    places per candidate, W the smallest of MIN_WINDOW * 4^j (or P) that holds the widest band, so a round
+    costs O(P (M + W)) and no [P, P] matrix is formed. Returns the outcome
+    (`Insertion.slot` is meaningful where the candidate is alive at the end; `rounds`: the rounds taken, the
+    last one the check that nothing changes).
     """
-    pop = d_cand.shape[0]
-    cands = jnp.arange(pop, dtype=jnp.int32)
-    close = (cands[None, :] < cands[:, None]) & (d_cand <= t_dist**2)  # [i, j]: j before i, within t_dist
-    within = jnp.where(close, d_cand, jnp.inf)
-    length = min(CLOSE_CANDIDATES, pop)
-    negated, listed = jax.lax.top_k(-within, length)  # the nearest `length` (any order would do), in one pass
-    listed_d = -negated
-    crowded = (close.sum(axis=1) > length).any()
-    every = jnp.broadcast_to(cands, (pop, pop))
-    return batching.rare_cond(
-        crowded, lambda r, b, nd, ni, _, __, c, d, *rest: _rounds(r, b, nd, ni, c, d, *rest),
-        lambda r, b, nd, ni, c, d, _, __, *rest: _rounds(r, b, nd, ni, c, d, *rest),
-        rep, behaviors, near_d, near_i, listed, listed_d, every, within, qualities, usable, t_dist)
+    ok, axis = _searched(behaviors, usable, t_dist)
+    order, lo, hi, widest = _bands(behaviors, ok, behaviors, ok, axis, t_dist)
+
+    def rule(width: int, rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
+             qualities: jax.Array, usable: jax.Array, order: jax.Array, lo: jax.Array, hi: jax.Array,
+             t_dist: jax.Array) -> Insertion:
+        d, cols = _in_band(width, behaviors, behaviors, order, lo, hi)
+        earlier = (cols < jnp.arange(cols.shape[0])[:, None]) & (d <= t_dist**2)
+        # One buffer of distances, read by every round alike (a recomputation could round otherwise).
+        dists = jax.lax.optimization_barrier(jnp.where(earlier, d, jnp.inf))
+        return _rounds(rep, behaviors, near_d, near_i, cols, dists, qualities, usable, t_dist)
+
+    return _on_prefix(_window_sizes(behaviors.shape[0]), widest, rule, rep, behaviors, near_d, near_i, qualities,
+                      usable, order, lo, hi, t_dist)
 
 
 def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
@@ -411,11 +487,8 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     sizes = _prefix_sizes(capacity, min_prefix)
     # The actions are only written, at the slots the rule picks: they stay out of the prefix work.
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
-    near_d, near_i = _on_prefix(sizes, rep.count, functools.partial(_nearest_before, min(num_near, sizes[0])), slim,
-                                behaviors)
-    # One buffer of candidate distances, read by every consumer alike (a recomputation could round otherwise).
-    d_cand = jax.lax.optimization_barrier(neighbours.sq_dists(behaviors, behaviors))
-    ins = _parallel_rule(rep, behaviors, near_d, near_i, d_cand, qualities, usable, t_dist)
+    near_d, near_i = _near_within(num_near, min_prefix, slim, behaviors, *_searched(behaviors, usable, t_dist), t_dist)
+    ins = _parallel_rule(rep, behaviors, near_d, near_i, qualities, usable, t_dist)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
     return new.replace(actions=rep.actions.at[written_slots(ins, capacity)].set(actions, mode="drop")), ins
