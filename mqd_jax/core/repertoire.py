@@ -9,11 +9,11 @@ entries are always the prefix `[0, count)`. Ties: of skills equally near a
 candidate, the nearest is the one in the lowest slot (as a scan over the slots
 finds it), whether it was there before the generation or written in it.
 
-Speed: the repertoire only changes at the slots this generation writes, so the
-nearest skill of a candidate is either one of its M nearest pre-generation
-skills that is still there, or an earlier candidate of the generation. Both are
-precomputed in batch; the sequential loop then does O(M + P) work per
-candidate, and falls back to an exact O(C) search when all M were replaced.
+Speed (`_parallel_rule`): every candidate's step is computed at once, round after round, until
+nothing changes; the skills and the earlier candidates a step reads are only those within t_dist,
+found once per generation in bands along one behavior axis (`_bands`), so the rule forms no [P, P]
+or [P, C] matrix for a large generation (the neighbour lists' update still measures the new skills
+against every skill). The sequential rule (`_sequential_rule`) is the oracle.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from mqd_jax.core import batching, neighbours, pytree
 
-# Nearest pre-generation skills precomputed per candidate before the sequential rule (`insert`'s num_near).
+# Nearest pre-generation skills (within t_dist) listed per candidate before the rule (`insert`'s num_near).
 NUM_NEAR = 4
 
 
