@@ -10,6 +10,7 @@ import pytest
 from flax import serialization
 
 from mqd_jax import Config, run_mqd
+from mqd_jax.core.run import get_task
 from mqd_jax.experiment import checkpoint, cli, folders, results
 
 CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),
@@ -166,6 +167,26 @@ def test_checkpoints_of_formats_1_to_4_still_load(tmp_path, uninterrupted_paper)
     path.write_bytes(serialization.msgpack_serialize({**old, "format": 2}))  # the arrays are not part of format 2
     with pytest.raises(ValueError, match="does not fit this config"):
         checkpoint.load(str(path), PAPER, KEY)
+
+
+def test_the_features_kept_per_skill_are_the_tasks_and_a_format_7_checkpoint_gets_them(tmp_path, uninterrupted):
+    """"mqd" (its model takes 2D Obstacle's features) keeps each skill's features in the repertoire, computed once
+    from its pool: they are the task's features of the skills' actions (0 in empty slots). A format-7 file had
+    none: loading computes them from the saved actions."""
+    state, metrics = uninterrupted
+    rep, task = state.repertoire, get_task(CFG)
+    valid = np.asarray(rep.valid)
+    assert rep.features.shape == (CFG.capacity, 6) and valid.sum() > 16
+    np.testing.assert_allclose(rep.features[valid], task.features(rep.actions[valid]), atol=1e-6)
+    assert not np.asarray(rep.features)[~valid].any()
+    path = tmp_path / "run.ckpt"
+    checkpoint.save(str(path), state, metrics, CFG, KEY)
+    body = serialization.msgpack_restore(serialization.msgpack_restore(path.read_bytes())["body"])
+    body["state"]["repertoire"] = {k: v for k, v in body["state"]["repertoire"].items() if k != "features"}
+    _write(path, body, 7)
+    loaded, _ = checkpoint.load(str(path), CFG, KEY)
+    np.testing.assert_allclose(loaded.repertoire.features, rep.features, atol=1e-6)
+    assert_trees_equal(loaded.repertoire.replace(features=rep.features), rep)
 
 
 def test_a_crash_while_saving_keeps_the_previous_checkpoint(tmp_path, uninterrupted, monkeypatch):

@@ -7,9 +7,10 @@ import optax
 import pytest
 
 from envs.obstacle2d import Obstacle2D
-from mqd_jax import Config, run_mqd
+from mqd_jax import Config, init, run_mqd
 from mqd_jax.core import registry
 from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.core.run import generation
 from mqd_jax.emitters import acquisition
 from mqd_jax.surrogate import model
 
@@ -201,3 +202,22 @@ def test_a_training_step_is_one_optax_adam_step_at_the_traced_learning_rate(line
     step = max(float(jnp.abs(a - c).max()) for a, c in zip(jax.tree.leaves(trained.params),
                                                              jax.tree.leaves(ms.params), strict=True))
     assert step == pytest.approx(rate, rel=1e-3)
+
+
+@pytest.mark.parametrize(("algorithm", "options", "traced"), [("mqd", {}, 2), ("mqd", {"steering_share": 0.0}, 1),
+                                                              ("mqd", {"features": False}, 0), ("qd", {}, 0)])
+def test_a_generation_computes_the_tasks_features_of_its_pool_only(algorithm, options, traced, monkeypatch):
+    """The repertoire keeps each skill's features (computed once, from the pool that proposed it), so anchors,
+    training rows and the gate read them: a generation's program computes the features of its pool, and the
+    steering Jacobian differentiates them; nothing else does (QD, or a model without features: none)."""
+    calls = []
+    features = Obstacle2D.features
+    monkeypatch.setattr(Obstacle2D, "features", lambda self, a: calls.append(a.shape) or features(self, a))
+    if algorithm == "mqd":
+        options = {**options, "warmup_samples": 8}
+    cfg = Config(task="obstacle2d", algorithm=algorithm, algorithm_options=options, population_size=8, capacity=64,
+                 archive_capacity=16, max_generations=2)
+    state = init(jax.random.PRNGKey(0), cfg)
+    calls.clear()
+    jax.make_jaxpr(lambda s: generation(s, cfg, cfg.params()))(state)
+    assert len(calls) == traced, calls

@@ -36,9 +36,11 @@ def test_a_run_repeats_the_saved_one_bit_for_bit(task, algorithm, saved):
     now = {name.replace(".emitter.surrogate.", ".emitter.") if older else name: x
            for name, x in reference_runs.arrays(task, algorithm).items()}
     # 0.12 added the standard metrics max_quality and qd_score (checked against their definitions in test_run.py),
-    # 0.13 insertion_rounds (the parallel insertion's rounds, test_repertoire.py).
+    # 0.13 insertion_rounds (the parallel insertion's rounds, test_repertoire.py), 0.14 the features the repertoire
+    # keeps per skill (test_checkpoint.py: the task's features of its skills).
     assert set(before) <= set(now) and set(now) - set(before) <= {"metrics.max_quality", "metrics.qd_score",
-                                                                   "metrics.insertion_rounds"}
+                                                                   "metrics.insertion_rounds",
+                                                                   "state.repertoire.features"}
     now = {name: x for name, x in now.items() if name in before}
     if algorithm.startswith("mqd") and task == "push_cube":
         # M-QD's model on PushCube trains on contact-rich rollouts; since 0.13 (its nearest-neighbour searches in

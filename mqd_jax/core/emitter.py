@@ -57,12 +57,16 @@ class Proposal:
         varied from (its first parent), -1 for a candidate with none (uniform);
         or None where the emitter does not say. Read by a wrapper
         (`ModelEmitter` anchors its predictions there); `update` is not given it.
+      features: [num, f] the task's features of the actions (`Task.features`) where the emitter computed them,
+        or None. Where the emitter `keeps_features`, the repertoire keeps them for the skills the candidates
+        become (the run computes them where they are None); `update` is given them.
     """
 
     actions: jax.Array
     rollout: jax.Array
     info: Any = ()
     parents: jax.Array | None = None
+    features: jax.Array | None = None
 
 
 @pytree.dataclass
@@ -117,6 +121,12 @@ class Emitter:
     def check_task(self, task: Task) -> None:
         """Raises ValueError if the emitter cannot serve this task (default: it can)."""
         del task
+
+    def keeps_features(self, task: Task) -> bool:
+        """Whether the repertoire keeps the task's features of each skill for this emitter (`Repertoire.features`:
+        computed once per skill, from `Proposal.features`; default: no)."""
+        del task
+        return False
 
     def pool_size(self, num: int) -> int:
         """How many candidates the emitter makes and judges to propose `num` (default: `num`); sizes the memory

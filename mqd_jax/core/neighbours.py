@@ -70,16 +70,17 @@ def k_smallest_of(values: jax.Array, ids: jax.Array, k: int) -> tuple[jax.Array,
     values are then passed whole, computed once).
     """
     big = jnp.iinfo(jnp.int32).max
-    out_v, out_i = [], []
-    for _ in range(k):
+
+    def extract(values: jax.Array, _: None) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         m = values.min(axis=1)
         sel = jnp.where(values == m[:, None], ids, big).min(axis=1)
         m, sel = batching.rare_cond(((sel == big) & jnp.isfinite(m)).any(), _matched, lambda v, i, m, s: (m, s),
                                     values, ids, m, sel)
-        out_v.append(m)
-        out_i.append(jnp.where(jnp.isfinite(m), sel, -1))
-        values = jnp.where(ids == sel[:, None], jnp.inf, values)
-    return jnp.stack(out_v, 1), jnp.stack(out_i, 1)
+        return jnp.where(ids == sel[:, None], jnp.inf, values), (m, jnp.where(jnp.isfinite(m), sel, -1))
+
+    # A loop, not k copies of the pass: the program (and its compile time) stays the size of one pass.
+    _, (out_v, out_i) = jax.lax.scan(extract, values, None, length=k)
+    return out_v.T, out_i.T
 
 
 def k_smallest(values: jax.Array, k: int) -> tuple[jax.Array, jax.Array]:

@@ -51,6 +51,9 @@ class Repertoire:
       valid: [C] bool, equal to `arange(C) < count` (entries fill a prefix).
       count: int32 scalar, number of skills.
       neighbours: nearest-neighbour lists that give `novelty`.
+      features: [C, f] the task's features of each skill's action (`Task.features`), kept where the emitter
+        asks (`Emitter.keeps_features`: M-QD's model reads them), so that they are computed once per skill;
+        f = 0 otherwise. Written with the actions, at the slots insertion picks.
     """
 
     actions: jax.Array
@@ -60,9 +63,11 @@ class Repertoire:
     valid: jax.Array
     count: jax.Array
     neighbours: neighbours.NeighbourLists
+    features: jax.Array
 
     @classmethod
-    def empty(cls, capacity: int, action_dim: int, behavior_dim: int, list_length: int) -> Repertoire:
+    def empty(cls, capacity: int, action_dim: int, behavior_dim: int, list_length: int,
+              feature_dim: int = 0) -> Repertoire:
         return cls(
             actions=jnp.zeros((capacity, action_dim), jnp.float32),
             behaviors=jnp.zeros((capacity, behavior_dim), jnp.float32),
@@ -71,6 +76,7 @@ class Repertoire:
             valid=jnp.zeros((capacity,), bool),
             count=jnp.int32(0),
             neighbours=neighbours.NeighbourLists.empty(capacity, list_length),
+            features=jnp.zeros((capacity, feature_dim), jnp.float32),
         )
 
     @property
@@ -274,8 +280,9 @@ MIN_WINDOW = 64
 
 
 def _window_sizes(size: int) -> list[int]:
-    """The window lengths a band search over `size` sorted rows chooses from, ascending: MIN_WINDOW * 4^j, and size."""
-    return sorted({min(MIN_WINDOW * 4**j, size) for j in range(max(size.bit_length() // 2, 1))} | {size})
+    """The window lengths a band search over `size` sorted rows chooses from, ascending: MIN_WINDOW * 4^j up to
+    half of size, and size (each length is a copy of the search in the program)."""
+    return [*(MIN_WINDOW * 4**j for j in range(size.bit_length()) if 2 * MIN_WINDOW * 4**j <= size), size]
 
 
 def _axis(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
@@ -325,7 +332,7 @@ def _in_band(width: int, queries: jax.Array, rows: jax.Array, order: jax.Array, 
 
 
 # Below this many candidate-skill pairs, `_near_within` reads every skill (no sorting, which a CPU does slowly).
-BRUTE_FORCE_PAIRS = 1 << 18
+BRUTE_FORCE_PAIRS = 1 << 20
 
 
 def _near_within(num_near: int, min_prefix: int, rep: Repertoire, behaviors: jax.Array, ok: jax.Array,
@@ -461,8 +468,8 @@ def written_slots(ins: Insertion, capacity: int) -> jax.Array:
 
 
 def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array, usable: jax.Array,
-           t_dist: jax.Array, k: int, num_near: int, chunk: int, min_prefix: int = 512
-           ) -> tuple[Repertoire, Insertion]:
+           t_dist: jax.Array, k: int, num_near: int, chunk: int, min_prefix: int = 512,
+           features: jax.Array | None = None) -> tuple[Repertoire, Insertion]:
     """Inserts a generation of candidates and updates novelty.
 
     Args:
@@ -472,6 +479,8 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
         result; the others are skipped.
       t_dist: distance threshold; k: novelty's K; num_near: M above; chunk: rows
         of neighbour lists updated at a time; min_prefix: see below.
+      features: [P, f] the candidates' features, written with their actions where the repertoire keeps
+        features (f > 0; required then).
 
     Returns:
       The new repertoire (novelty up to date) and what happened to each candidate.
@@ -485,10 +494,17 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     """
     capacity, pop = rep.capacity, behaviors.shape[0]
     sizes = _prefix_sizes(capacity, min_prefix)
-    # The actions are only written, at the slots the rule picks: they stay out of the prefix work.
-    slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype))
+    # The actions and features are only written, at the slots the rule picks: they stay out of the prefix work.
+    slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype), features=jnp.zeros((capacity, 0)))
     near_d, near_i = _near_within(num_near, min_prefix, slim, behaviors, *_searched(behaviors, usable, t_dist), t_dist)
     ins = _parallel_rule(rep, behaviors, near_d, near_i, qualities, usable, t_dist)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
-    return new.replace(actions=rep.actions.at[written_slots(ins, capacity)].set(actions, mode="drop")), ins
+    written = written_slots(ins, capacity)
+    kept = rep.features
+    if kept.shape[1]:
+        if features is None or features.shape != (pop, kept.shape[1]):
+            raise ValueError(f"the repertoire keeps {kept.shape[1]} features per skill: insert needs the candidates' "
+                             f"features [{pop}, {kept.shape[1]}], got {None if features is None else features.shape}")
+        kept = kept.at[written].set(features.astype(kept.dtype), mode="drop")
+    return new.replace(actions=rep.actions.at[written].set(actions, mode="drop"), features=kept), ins

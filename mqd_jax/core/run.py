@@ -25,7 +25,7 @@ from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.emitter import Evaluated, Proposal
 from mqd_jax.core.params import Params
 from mqd_jax.core.repertoire import AddStatus
-from mqd_jax.core.task import Task, check_outputs
+from mqd_jax.core.task import Task, check_outputs, feature_dim
 
 # The metrics of every generation (scalars; see `run_mqd`) and their dtypes; the emitter adds its own
 # (`metric_dtypes`). A skipped generation reports zeros of these without tracing a generation to find out.
@@ -139,7 +139,7 @@ def _init(key: jax.Array, cfg: Config) -> State:
     n, d = task.action_dim, task.behavior_dim
     key, k_emitter = jax.random.split(key)
     return State(
-        repertoire=repertoire.Repertoire.empty(cfg.capacity, n, d, cfg.neighbours),
+        repertoire=repertoire.Repertoire.empty(cfg.capacity, n, d, cfg.neighbours, kept_features(cfg)),
         archive=archive_lib.Archive.empty(cfg.archive_capacity, n, d),
         coverage=_empty_coverage(cfg),
         emitter=cfg.emitter.init(k_emitter, task),
@@ -147,6 +147,12 @@ def _init(key: jax.Array, cfg: Config) -> State:
         generation=jnp.int32(0),
         num_evaluations=jnp.int32(0),
     )
+
+
+def kept_features(cfg: Config) -> int:
+    """How many features per skill the repertoire keeps for the config's emitter (`Emitter.keeps_features`)."""
+    task = get_task(cfg)
+    return feature_dim(task) if cfg.emitter.keeps_features(task) else 0
 
 
 @functools.cache
@@ -196,6 +202,8 @@ class Candidates:
       info: the emitter's data about its proposal, handed back to its update.
       generation: int32, the generation of the state they were asked for: `tell`
         refuses them for a state of another generation.
+      features: [P, f] the task's features of the actions where the repertoire keeps them
+        (`Repertoire.features`; f = 0 otherwise).
     """
 
     actions: jax.Array
@@ -203,6 +211,7 @@ class Candidates:
     key: jax.Array
     info: Any
     generation: jax.Array
+    features: jax.Array
 
 
 def _checked(state: State, cfg: Config, params: Params | None) -> Params:
@@ -245,8 +254,15 @@ def _propose(state: State, cfg: Config, params: Params) -> Candidates:
     if shapes != ((pop, task.action_dim), (pop,), jnp.bool_):
         raise ValueError(f"{emitter!r}.propose returned actions {shapes[0]} and rollout {shapes[1]} {shapes[2]}; "
                          f"expected ({pop}, {task.action_dim}) and ({pop},) bool")
-    return Candidates(proposal.actions.astype(jnp.float32), proposal.rollout, k_rollout, proposal.info,
-                      state.generation)
+    actions = proposal.actions.astype(jnp.float32)
+    kept = kept_features(cfg)
+    features = jnp.zeros((pop, 0), jnp.float32)
+    if kept:
+        features = task.features(actions) if proposal.features is None else proposal.features
+        if jnp.shape(features) != (pop, kept):
+            raise ValueError(f"{emitter!r}.propose returned features {jnp.shape(features)}; expected ({pop}, {kept})")
+    return Candidates(actions, proposal.rollout, k_rollout, proposal.info, state.generation,
+                      jnp.asarray(features, jnp.float32))
 
 
 @stage("evaluate")
@@ -267,11 +283,12 @@ def _usable(candidates: Candidates, behaviors: jax.Array, qualities: jax.Array,
 
 @stage("insert")
 def _insert(rep: repertoire.Repertoire, actions: jax.Array, behaviors: jax.Array, qualities: jax.Array,
-            usable: jax.Array, cfg: Config, params: Params) -> tuple[repertoire.Repertoire, repertoire.Insertion]:
+            usable: jax.Array, cfg: Config, params: Params,
+            features: jax.Array) -> tuple[repertoire.Repertoire, repertoire.Insertion]:
     """Stage insert: the paper's sequential insertion rule (computed in data-parallel rounds); novelty brought up
     to date."""
     return repertoire.insert(rep, actions, behaviors, qualities, usable, params.t_dist, cfg.k, repertoire.NUM_NEAR,
-                             chunk=32)
+                             chunk=32, features=features)
 
 
 @stage("archive")
@@ -302,7 +319,8 @@ def _update_emitter(key: jax.Array, state: State, candidates: Candidates, evalua
                     rep: repertoire.Repertoire, cfg: Config, params: Params) -> tuple[Any, dict[str, jax.Array]]:
     """Stage emitter update: the emitter learns from the results; its metrics, checked against its `metrics()`."""
     emitter = cfg.emitter
-    proposal = Proposal(candidates.actions, candidates.rollout, candidates.info)
+    proposal = Proposal(candidates.actions, candidates.rollout, candidates.info,
+                        features=candidates.features if candidates.features.shape[1] else None)
     emitter_state, metrics = emitter.update(key, state.emitter, proposal, evaluated, rep, get_task(cfg), params)
     declared = emitter.metrics()
     if set(metrics) != set(declared):
@@ -395,7 +413,8 @@ def _tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities:
           auxiliary: jax.Array, cfg: Config, params: Params) -> tuple[State, dict[str, jax.Array]]:
     key, _, _, k_update = jax.random.split(state.key, 4)
     behaviors, qualities, usable = _usable(candidates, behaviors, qualities, valid)
-    rep, ins = _insert(state.repertoire, candidates.actions, behaviors, qualities, usable, cfg, params)
+    rep, ins = _insert(state.repertoire, candidates.actions, behaviors, qualities, usable, cfg, params,
+                       candidates.features)
     auxiliary = jnp.where(usable[:, None], auxiliary, 0.0).astype(jnp.float32)
     evaluated = Evaluated(behaviors, qualities, usable, ins.status, auxiliary)
     emitter_state, emitter_metrics = _update_emitter(k_update, state, candidates, evaluated, rep, cfg, params)

@@ -70,15 +70,18 @@ class Imagination(ModelEmitter):
                 num: int) -> Proposal:
         def imagine(rep: Repertoire, key: jax.Array) -> tuple[Repertoire, tuple[Any, ...]]:
             pool = self.inner.propose(key, state.inner, rep, task, params.part(params.emitter.inner), num)
-            plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, rep, task, pool.parents)
+            x = self.surrogate.inputs(pool.actions, task)
+            features = x[:, task.action_dim:]  # [num, 0] where the model takes no features
+            plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, rep, task, pool.parents, x)
             predicted = self.surrogate.chosen(state.surrogate, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,
-                                             params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32)
+                                             params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32,
+                                             features=features)
             # anchoring "auto" compares both predictions on the rollouts (ModelEmitter.update).
             both = (plain.mean(axis=0), anchored.mean(axis=0)) if self.surrogate.anchoring == "auto" else ()
-            return rep, (pool, predicted, both, repertoire_lib.written_slots(ins, rep.capacity))
+            return rep, (pool, predicted, both, repertoire_lib.written_slots(ins, rep.capacity), features)
 
-        _, (pools, predicted, both, written) = jax.lax.scan(
+        _, (pools, predicted, both, written, features) = jax.lax.scan(
             imagine, repertoire, jax.random.split(key, self.generations))
         kept = survivors(written, repertoire.capacity).reshape(-1)
         warm_up = state.evaluations < self.warmup_samples
@@ -95,4 +98,5 @@ class Imagination(ModelEmitter):
         if self.surrogate.anchoring == "auto":
             info["both_behaviors"] = jnp.stack([flat(y)[:, :-1] for y in both])
         # No parents: an imagined candidate's parent may be an imagined skill, not one of `repertoire`'s.
-        return Proposal(flat(pools.actions), rollout, info)
+        return Proposal(flat(pools.actions), rollout, info,
+                        features=flat(features) if self.keeps_features(task) else None)

@@ -165,6 +165,11 @@ class ModelEmitter(Emitter):
     def pool_size(self, num: int) -> int:
         return self.inner.pool_size(self.acquisition.pool_size(num))
 
+    def keeps_features(self, task: Task) -> bool:
+        """The model takes the task's features (`Surrogate(features=True)` and the task has some): the repertoire
+        keeps each skill's, so that anchors and training rows read them rather than compute them again."""
+        return self.surrogate.featured(task)
+
     def check_task(self, task: Task) -> None:
         self.inner.check_task(task)
         self.surrogate.check_task(task)
@@ -227,8 +232,9 @@ class ModelEmitter(Emitter):
                 pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
                                               warm_up)
         with jax.named_scope("predict"):
+            x = self.surrogate.inputs(pool.actions, task)  # the pool's features computed here, once
             plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, repertoire, task,
-                                                         pool.parents)
+                                                         pool.parents, x)
             judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
         with jax.named_scope("acquire"):
             rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up,
@@ -248,7 +254,8 @@ class ModelEmitter(Emitter):
             info["validity"] = judged.validity[rows]
         if self.surrogate.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
             info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
-        return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows])
+        return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows],
+                        x[rows, task.action_dim:] if self.keeps_features(task) else None)
 
     def _steered(self, key: jax.Array, state: ModelEmitterState, pool: Proposal, repertoire: Repertoire, task: Task,
                  params: Params, num: int, warm_up: jax.Array) -> tuple[Proposal, jax.Array]:
@@ -279,7 +286,7 @@ class ModelEmitter(Emitter):
         both = proposal.info["both_behaviors"] if self.surrogate.anchoring == "auto" else None
         surrogate, loss = self.surrogate.update(key, state.surrogate, evaluations >= self.warmup_samples,
                                                 proposal.actions, proposal.rollout, evaluated, both, repertoire, task,
-                                                params.emitter.surrogate)
+                                                params.emitter.surrogate, proposal.features)
         inner_proposal = Proposal(proposal.actions, proposal.rollout, proposal.info["inner"])
         inner, inner_metrics = self.inner.update(jax.random.fold_in(key, 1), state.inner, inner_proposal, evaluated,
                                                  repertoire, task, params.part(params.emitter.inner))

@@ -13,7 +13,8 @@ or was altered (checksum), and one written for another config, task or key.
 Files of the older formats 1 to 5 (1 and 2 without checksum; 1 to 3 with
 M-QD's model outside the emitter's state; 1 to 4 with one network where the
 model is now an ensemble; 1 to 5 with the model beside the emitter's other
-parts where its surrogate now holds it) still load.
+parts where its surrogate now holds it; 1 to 6 without a gate; 1 to 7 without the features the repertoire
+keeps per skill, computed from the saved actions) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.experiment.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -37,11 +38,11 @@ from mqd_jax.core import diagnostics, pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params, upgraded
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import State, check_state, get_task, init, metric_dtypes, run_generations
+from mqd_jax.core.run import State, check_state, get_task, init, kept_features, metric_dtypes, run_generations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
-FORMAT = 7
+FORMAT = 8
 # The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`), and the gate
 # format 7 added there (a fresh run's, where an older format's state is completed from one).
 _SURROGATE = ("model", "rollouts", "anchor_errors", "validity", "gate")
@@ -143,6 +144,21 @@ def _from_format_6(state: dict[str, Any]) -> dict[str, Any]:
     return {**state, "emitter": {**emitter, "surrogate": {**emitter["surrogate"], "gate": {}}}}
 
 
+def _from_format_7(state: dict[str, Any], cfg: Config) -> dict[str, Any]:
+    """Formats 1-7 kept no features per skill; since format 8 the repertoire keeps the task's features of each
+    skill where the emitter asks (`Repertoire.features`): computed from the saved actions (0 in empty slots)."""
+    rep = state["repertoire"]
+    if "features" in rep:
+        return state
+    actions, valid = np.asarray(rep["actions"]), np.asarray(rep["valid"], bool)
+    kept = kept_features(cfg)
+    features = np.zeros((*actions.shape[:-1], kept), np.float32)
+    if kept:
+        computed = np.asarray(get_task(cfg).features(jnp.asarray(actions.reshape(-1, actions.shape[-1]))))
+        features = np.where(valid[..., None], computed.reshape(features.shape), 0.0).astype(np.float32)
+    return {**state, "repertoire": {**rep, "features": features}}
+
+
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
     _register_pytrees()
@@ -214,7 +230,7 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
             payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
         if payload["format"] < 6:
             payload["state"] = _from_format_5(payload["state"])
-        payload["state"] = _from_format_6(payload["state"])
+        payload["state"] = _from_format_7(_from_format_6(payload["state"]), cfg)
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

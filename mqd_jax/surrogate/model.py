@@ -125,11 +125,15 @@ def normalize_targets(behaviors: jax.Array, qualities: jax.Array, task: Task) ->
 
 def inputs(actions: jax.Array, task: Task, features: bool = False) -> jax.Array:
     """The network's inputs: actions [..., n] normalized, then with `features` the task's features [..., f]."""
-    x = normalize_actions(actions, task)
     if not features:
-        return x
+        return normalize_actions(actions, task)
     flat = actions.reshape(-1, actions.shape[-1])
-    return jnp.concatenate([x, task.features(flat).reshape(*actions.shape[:-1], -1)], axis=-1)
+    return inputs_with(actions, task.features(flat).reshape(*actions.shape[:-1], -1), task)
+
+
+def inputs_with(actions: jax.Array, features: jax.Array, task: Task) -> jax.Array:
+    """The network's inputs of actions [..., n] whose features [..., f] are known (`Repertoire.features`)."""
+    return jnp.concatenate([normalize_actions(actions, task), features], axis=-1)
 
 
 def init(key: jax.Array, hidden_size: int, task: Task, ensemble_size: int = 1,
@@ -181,9 +185,10 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     `data` is a repertoire (its valid rows are the prefix [0, count)) or a
     rollout buffer (`Archive`: the filled prefix [0, min(total, A))); it must
     hold at least one row. With `feature_rows` the inputs include the task's
-    features, computed once for `feature_rows` rows drawn uniformly (with
-    replacement) from the data, on which the steps then draw their mini-batches
-    (features can cost a forward-kinematics pass per row). Returns the new
+    features of `feature_rows` rows drawn uniformly (with replacement) from the
+    data, on which the steps then draw their mini-batches (features can cost a
+    forward-kinematics pass per row: a repertoire that keeps its skills'
+    features gives them, else they are computed for those rows). Returns the new
     state and the mean loss over the steps and members.
     """
     filled = data.count if isinstance(data, Repertoire) else jnp.minimum(data.total, data.qualities.shape[0])
@@ -193,8 +198,9 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
                    num_batches)
     key, drawn = jax.random.split(key)
     rows = jax.random.randint(drawn, (feature_rows,), 0, filled)
-    return fit(model, key, inputs(actions[rows], task, True), targets[rows], jnp.int32(feature_rows), learning_rate,
-               batch_size, num_batches)
+    kept = isinstance(data, Repertoire) and data.features.shape[1] > 0  # the skills' features, computed once each
+    x = inputs_with(actions[rows], data.features[rows], task) if kept else inputs(actions[rows], task, True)
+    return fit(model, key, x, targets[rows], jnp.int32(feature_rows), learning_rate, batch_size, num_batches)
 
 
 def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,

@@ -153,7 +153,7 @@ class Surrogate:
         if self.gate is not None:
             self.gate.check_task(task)
 
-    def _featured(self, task: Task) -> bool:
+    def featured(self, task: Task) -> bool:
         """Whether the model takes features of `task` (`features` is set and the task has some)."""
         return self.features and feature_dim(task) > 0
 
@@ -162,11 +162,20 @@ class Surrogate:
         return self.gate is not None and self.gate.serves(task)
 
     def _input_size(self, task: Task) -> int:
-        return task.action_dim + (feature_dim(task) if self._featured(task) else 0)
+        return task.action_dim + (feature_dim(task) if self.featured(task) else 0)
 
-    def inputs(self, actions: jax.Array, task: Task) -> jax.Array:
-        """The networks' inputs [N, n (+ f)] of actions [N, n] (`model.inputs`)."""
-        return model.inputs(actions, task, self._featured(task))
+    def inputs(self, actions: jax.Array, task: Task, features: jax.Array | None = None) -> jax.Array:
+        """The networks' inputs [N, n (+ f)] of actions [N, n] (`model.inputs`), from their features [N, f] where
+        known (`Proposal.features`)."""
+        if features is not None and self.featured(task):
+            return model.inputs_with(actions, features, task)
+        return model.inputs(actions, task, self.featured(task))
+
+    def skill_inputs(self, repertoire: Repertoire, slots: jax.Array, task: Task) -> jax.Array:
+        """The networks' inputs of the skills at slots [N], from the features the repertoire keeps where it does
+        (`Repertoire.features`, as `ModelEmitter.keeps_features` asks)."""
+        kept = repertoire.features.shape[-1] == feature_dim(task) > 0
+        return self.inputs(repertoire.actions[slots], task, repertoire.features[slots] if kept else None)
 
     def default_params(self) -> SurrogateParams:
         return SurrogateParams(jnp.float32(self.learning_rate))
@@ -198,11 +207,12 @@ class Surrogate:
         return model.predict(state.model, actions, task, self.features)
 
     def predictions(self, state: SurrogateState, actions: jax.Array, repertoire: Repertoire, task: Task,
-                    parents: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
-        """The members' plain predictions [E, N, d + 1] of actions [N, n] and, unless `anchoring` is "none", the
-        anchored ones: at the parents' slots [N] (-1: not anchored) with anchor="parent" and parents given, else
-        at the nearest skills."""
-        x = self.inputs(actions, task)
+                    parents: jax.Array | None = None, x: jax.Array | None = None
+                    ) -> tuple[jax.Array, jax.Array | None]:
+        """The members' plain predictions [E, N, d + 1] of actions [N, n] (their network inputs x where computed
+        already) and, unless `anchoring` is "none", the anchored ones: at the parents' slots [N] (-1: not
+        anchored) with anchor="parent" and parents given, else at the nearest skills."""
+        x = self.inputs(actions, task) if x is None else x
         plain = self.members(state, actions, task, x)
         gate = (lambda y: self.gate.gated(state.gate, x, y, task)) if self._gated(task) else (lambda y: y)
         if self.anchoring == "none":
@@ -215,7 +225,8 @@ class Surrogate:
             _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
             anchored_rows = repertoire.count > 0
         known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
-        anchored = known + plain - self.members(state, repertoire.actions[anchor], task)
+        anchored = known + plain - self.members(state, repertoire.actions[anchor], task,
+                                                self.skill_inputs(repertoire, anchor, task))
         return gate(plain), gate(jnp.where(anchored_rows, anchored, plain))
 
     def chosen(self, state: SurrogateState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
@@ -229,11 +240,12 @@ class Surrogate:
 
     def update(self, key: jax.Array, state: SurrogateState, due: jax.Array, actions: jax.Array, rollout: jax.Array,
                evaluated: Evaluated, both_behaviors: jax.Array | None, repertoire: Repertoire, task: Task,
-               params: SurrogateParams) -> tuple[SurrogateState, jax.Array]:
-        """The surrogate after a generation's rollouts of actions [P] (`rollout` [P]: rolled out), and the mean
-        training loss (NaN when it did not train). Trains the model where `due` (and it has data) on the
-        repertoire or its rollout buffer, the validity classifier on the rollouts, and with anchoring "auto"
-        averages both predictions' held-out errors (`both_behaviors` [2, P, d]: the plain and the anchored)."""
+               params: SurrogateParams, features: jax.Array | None = None) -> tuple[SurrogateState, jax.Array]:
+        """The surrogate after a generation's rollouts of actions [P] (`rollout` [P]: rolled out; `features`
+        [P, f] their features where known), and the mean training loss (NaN when it did not train). Trains the
+        model where `due` (and it has data) on the repertoire (the features it keeps) or its rollout buffer, the
+        validity classifier on the rollouts, and with anchoring "auto" averages both predictions' held-out
+        errors (`both_behaviors` [2, P, d]: the plain and the anchored)."""
         rollouts, data = state.rollouts, repertoire
         if self.training_data == "rollouts":
             rollouts = data = archive_lib.push(state.rollouts, actions, evaluated.behaviors, evaluated.qualities,
@@ -243,7 +255,7 @@ class Surrogate:
             trained, loss = jax.lax.cond(
                 due & has_data, lambda: model.train(state.model, key, data, task, params.learning_rate,
                                                     self.batch_size, self.num_batches,
-                                                    self.feature_rows if self._featured(task) else None),
+                                                    self.feature_rows if self.featured(task) else None),
                 lambda: (state.model, jnp.float32(jnp.nan)))
         validity = state.validity
         if self.validity is not None:
@@ -252,7 +264,7 @@ class Surrogate:
         gate = state.gate
         if self._gated(task):
             outcomes = jnp.concatenate([evaluated.behaviors, evaluated.qualities[:, None]], axis=1)
-            gate = self.gate.update(jax.random.fold_in(key, 4), state.gate, self.inputs(actions, task),
+            gate = self.gate.update(jax.random.fold_in(key, 4), state.gate, self.inputs(actions, task, features),
                                     evaluated.auxiliary, outcomes, evaluated.usable, task, params.learning_rate)
         anchor_errors = state.anchor_errors
         if self.anchoring == "auto":
