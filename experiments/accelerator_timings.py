@@ -57,14 +57,15 @@ def population_row(algorithm: str, population: int, args: argparse.Namespace) ->
     b, q, ok, aux = task.evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
     b, q, usable = _usable(candidates, b, q, ok)
     rep, ins = repertoire.insert(state.repertoire, candidates.actions, b, q, usable, params.t_dist, cfg.k,
-                                 repertoire.NUM_NEAR, chunk=32)
+                                 repertoire.NUM_NEAR, chunk=32, features=candidates.features)
     evaluated = Evaluated(b, q, usable, ins.status, jnp.where(usable[:, None], aux, 0.0).astype(jnp.float32))
     stages = {
         "ask": jax.jit(lambda s: ask(s, cfg, params)),
         "rollouts": jax.jit(lambda s: task.evaluate_with_auxiliary(candidates.actions, candidates.key,
                                                                    candidates.rollout)),
         "insert": jax.jit(lambda s: repertoire.insert(s.repertoire, candidates.actions, b, q, usable, params.t_dist,
-                                                      cfg.k, repertoire.NUM_NEAR, chunk=32)),
+                                                      cfg.k, repertoire.NUM_NEAR, chunk=32,
+                                                      features=candidates.features)),
         "archive + coverage": jax.jit(lambda s: (
             _archive(s.archive, s.repertoire, candidates.actions, evaluated, ins),
             _cover(s.coverage, s.repertoire, evaluated, ins, params.t_dist))),

@@ -1,6 +1,7 @@
 """Where compiling a run's program goes: the whole chunk and each stage of a generation, traced and compiled alone.
 
     python experiments/compile_time.py [--task push_cube] [--algorithms qd mqd] [--out results/compile_time.md]
+    PYTHONPATH=OLD_CHECKOUT:experiments python experiments/compile_time.py ...   # the same, older code (0.13 on)
 
 For each algorithm (Table II's column of the task, `Config.paper`), the program `mqd run` compiles (a chunk
 of generations, `lax.scan` of one generation: `checkpoint.compile_chunk`'s) and, alone, the stages of a
@@ -47,16 +48,18 @@ def rows(task: str, algorithm: str) -> dict[str, tuple[float, float, int]]:
     candidates = ask(state, cfg, params)
     b, q, ok, aux = t.evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
     b, q, usable = _usable(candidates, b, q, ok)
+    # The features the repertoire keeps per skill (0.14; an older checkout has none).
+    kept = {"features": candidates.features} if hasattr(candidates, "features") else {}
     rep, ins = repertoire.insert(state.repertoire, candidates.actions, b, q, usable, params.t_dist, cfg.k,
-                                 repertoire.NUM_NEAR, chunk=32)
+                                 repertoire.NUM_NEAR, chunk=32, **kept)
     evaluated = Evaluated(b, q, usable, ins.status, jnp.where(usable[:, None], aux, 0.0).astype(jnp.float32))
     found["ask"] = timed(lambda s, p: ask(s, cfg, p), state, params)
     found["rollouts"] = timed(lambda a, k, m: t.evaluate_with_auxiliary(a, k, m), candidates.actions, candidates.key,
                               candidates.rollout)
     # Every array an argument: one closed over would be a constant, which XLA may fold at compile time.
-    found["insert"] = timed(lambda s, a, b, q, u, p: repertoire.insert(s.repertoire, a, b, q, u, p.t_dist, cfg.k,
-                                                                       repertoire.NUM_NEAR, chunk=32),
-                            state, candidates.actions, b, q, usable, params)
+    found["insert"] = timed(lambda s, a, b, q, u, p, f: repertoire.insert(s.repertoire, a, b, q, u, p.t_dist, cfg.k,
+                                                                          repertoire.NUM_NEAR, chunk=32, **f),
+                            state, candidates.actions, b, q, usable, params, kept)
     found["update"] = timed(lambda s, c, e, r, p: _update_emitter(jax.random.PRNGKey(1), s, c, e, r, cfg, p),
                             state, candidates, evaluated, rep, params)
     return found

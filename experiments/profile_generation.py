@@ -44,7 +44,8 @@ def main() -> None:
         "ask (variation, acquisition)": jax.jit(lambda s: ask(s, cfg, params)),
         "rollouts": jax.jit(lambda s: task.evaluate(proposal.actions, key)),
         "insertion (incl. neighbours, novelty)": jax.jit(lambda s: repertoire.insert(
-            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, repertoire.NUM_NEAR, chunk=32)),
+            s.repertoire, proposal.actions, b, q, ok, params.t_dist, cfg.k, repertoire.NUM_NEAR, chunk=32,
+            features=proposal.features)),
         "coverage stamp": jax.jit(lambda s: coverage.stamp(s.coverage, b, ok.astype(jnp.int32), params.t_dist)),
     }
     emitter = cfg.emitter
