@@ -21,6 +21,11 @@ import report
 from mqd_jax import Config, run_mqd
 
 
+def _prefix(algorithm: str, population: int, seed: int) -> str:
+    """The names of a run's arrays start with this (seed 0's as the first files had them)."""
+    return f"{algorithm}/{population}/" + (f"seed{seed}/" if seed else "")
+
+
 def runs(args: argparse.Namespace) -> dict[str, np.ndarray]:
     """{"<algorithm>/<population>/<name>": array} of every run."""
     out = {}
@@ -28,13 +33,15 @@ def runs(args: argparse.Namespace) -> dict[str, np.ndarray]:
         for population in args.populations:
             cfg = Config.paper_2d(task="obstacle2d", algorithm=algorithm, population_size=population,
                                   capacity=max(4096, population), max_generations=args.generations)
-            state, metrics = jax.device_get(run_mqd(jax.random.PRNGKey(0), cfg))
-            n = int(state.repertoire.count)
-            arrays = {f"metrics.{k}": np.asarray(v) for k, v in metrics.items()}
-            arrays.update({f"repertoire.{k}": np.asarray(getattr(state.repertoire, k))[:n]
-                           for k in ("actions", "behaviors", "qualities")})
-            out.update({f"{algorithm}/{population}/{k}": v for k, v in arrays.items()})
-            print(f"{algorithm} population {population}: coverage {float(metrics['coverage'][-1]):.4f}", flush=True)
+            for seed in range(args.seeds):
+                state, metrics = jax.device_get(run_mqd(jax.random.PRNGKey(seed), cfg))
+                n = int(state.repertoire.count)
+                arrays = {f"metrics.{k}": np.asarray(v) for k, v in metrics.items()}
+                arrays.update({f"repertoire.{k}": np.asarray(getattr(state.repertoire, k))[:n]
+                               for k in ("actions", "behaviors", "qualities")})
+                out.update({f"{_prefix(algorithm, population, seed)}{k}": v for k, v in arrays.items()})
+                print(f"{algorithm} population {population} seed {seed}: coverage "
+                      f"{float(metrics['coverage'][-1]):.4f}", flush=True)
     return out
 
 
@@ -43,6 +50,7 @@ def main() -> None:
     parser.add_argument("--algorithms", nargs="+", default=["qd", "random", "mqd"])
     parser.add_argument("--populations", type=int, nargs="+", default=[100, 1024])
     parser.add_argument("--generations", type=int, default=100)
+    parser.add_argument("--seeds", type=int, default=1, help="seeds 0 .. N-1; more than 1: also the seeds' mean")
     which = parser.add_mutually_exclusive_group(required=True)
     which.add_argument("--save")
     which.add_argument("--compare")
@@ -54,17 +62,26 @@ def main() -> None:
         return
     with np.load(args.compare) as f:
         before = {k: f[k] for k in f.files if k != "about"}
-    lines = [f"2D Obstacle, {args.generations} generations, seed 0; {report.machine()}; against {args.compare}.", "",
-             "| algorithm | population | every array bit for bit | arrays that differ | largest coverage difference |",
-             "|---|---|---|---|---|"]
+    lines = [f"2D Obstacle, {args.generations} generations, seeds 0-{args.seeds - 1}; {report.machine()}; against "
+             f"{args.compare}. Seed 0's coverage, and (several seeds) the seeds' mean coverage: the largest "
+             "difference at any generation, and the standard error of the difference of the means there.", "",
+             "| algorithm | population | every array bit for bit | arrays that differ (seed 0) | largest coverage "
+             "difference, seed 0 | of the seeds' mean (standard error) |", "|---|---|---|---|---|---|"]
     for algorithm in args.algorithms:
         for population in args.populations:
-            prefix = f"{algorithm}/{population}/"
-            names = sorted(k for k in before if k.startswith(prefix))
+            prefix = _prefix(algorithm, population, 0)
+            names = sorted(k for k in before if k.startswith(prefix) and "/seed" not in k)
             differ = [k[len(prefix):] for k in names if k not in now or not np.array_equal(now[k], before[k])]
+            same = not differ and all(np.array_equal(now[k], before[k]) for k in before if k.startswith(prefix))
             gap = np.abs(now[prefix + "metrics.coverage"] - before[prefix + "metrics.coverage"]).max()
-            lines.append(f"| {algorithm} | {population} | {'yes' if not differ else 'no'} | "
-                         f"{', '.join(differ) or '-'} | {gap:.4f} |")
+            curves = [np.stack([run[_prefix(algorithm, population, seed) + "metrics.coverage"]
+                                for seed in range(args.seeds)]) for run in (now, before)]
+            mean_gap = np.abs(curves[0].mean(0) - curves[1].mean(0))
+            at = int(mean_gap.argmax())
+            error = np.sqrt((curves[0][:, at].var(ddof=1) + curves[1][:, at].var(ddof=1)) / args.seeds) if (
+                args.seeds > 1) else np.nan
+            lines.append(f"| {algorithm} | {population} | {'yes' if same else 'no'} | {', '.join(differ) or '-'} | "
+                         f"{gap:.4f} | {mean_gap[at]:.4f} ({error:.4f}) |")
     report.write(lines, args.out)
 
 
