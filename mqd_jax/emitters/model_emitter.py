@@ -264,10 +264,9 @@ class ModelEmitter(Emitter):
         were."""
         pool_size = pool.actions.shape[0]
         count = self._steered_count(pool_size, num)
-        # Reverse mode where the behavior has fewer dimensions than the action (d VJPs rather than n JVPs through
-        # the task's features and the network): the same Jacobian, at a fraction of the cost on a robot's IK.
-        differentiate = jax.jacrev if task.behavior_dim < task.action_dim else jax.jacfwd
-        jacobian = jax.vmap(differentiate(lambda a: self.surrogate.predict(state.surrogate, a, task)[0]))
+        # Forward mode: reverse mode (d VJPs rather than n JVPs, 4x faster through PushCube's IK) turns a masked
+        # branch's NaN (a norm's gradient at 0 in 2D Obstacle's features) into a NaN Jacobian; forward mode does not.
+        jacobian = jax.vmap(jax.jacfwd(lambda a: self.surrogate.predict(state.surrogate, a, task)[0]))
         quality_gradient = jax.vmap(jax.grad(lambda a: self.surrogate.predict(state.surrogate, a, task)[1]))
         children, steering_parents = self.steering.steer(key, repertoire, jacobian, task, params, count,
                                                          quality_gradient)
