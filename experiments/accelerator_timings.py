@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Any
 
 import bench_physics
 import jax
@@ -46,6 +47,25 @@ from mqd_jax.core.run import (
 from mqd_jax.experiment.sweep import run_batch, seed_keys
 
 
+def inserted(rep: Any, actions: jax.Array, b: jax.Array, q: jax.Array, usable: jax.Array, params: Any, cfg: Config,
+             kept: dict[str, jax.Array]) -> Any:
+    """The stage insert: `repertoire.insert` as a generation calls it (`kept`: the candidates' features)."""
+    return repertoire.insert(rep, actions, b, q, usable, params.t_dist, cfg.k, repertoire.NUM_NEAR, chunk=32, **kept)
+
+
+def generation_parts(state: Any, cfg: Config, params: Any) -> tuple[Any, ...]:
+    """One generation's pieces from `state`, as `run.generation` makes them: (candidates, behaviors, qualities,
+    usable, the insertion's extra arguments (the candidates' features; none in a checkout before 0.14), the
+    repertoire after the insertion, the insertion, what the emitter's update sees)."""
+    candidates = ask(state, cfg, params)
+    b, q, ok, aux = get_task(cfg).evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
+    b, q, usable = _usable(candidates, b, q, ok)
+    kept = {"features": candidates.features} if hasattr(candidates, "features") else {}
+    rep, ins = inserted(state.repertoire, candidates.actions, b, q, usable, params, cfg, kept)
+    evaluated = Evaluated(b, q, usable, ins.status, jnp.where(usable[:, None], aux, 0.0).astype(jnp.float32))
+    return candidates, b, q, usable, kept, rep, ins, evaluated
+
+
 def population_row(algorithm: str, population: int, args: argparse.Namespace) -> dict[str, float]:
     """{"generation": ms, "rounds": mean insertion rounds, stage: ms} of `algorithm` at `population`."""
     cfg, params, chunk, state = grown(algorithm, population, args)
@@ -53,19 +73,12 @@ def population_row(algorithm: str, population: int, args: argparse.Namespace) ->
     _, metrics = chunk(state, cfg, params, args.generations)
     found = {"generation": report.median_ms(lambda: chunk(state, cfg, params, args.generations), args.repeats)
              / args.generations, "rounds": float(np.mean(np.asarray(metrics["insertion_rounds"])))}
-    candidates = ask(state, cfg, params)
-    b, q, ok, aux = task.evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
-    b, q, usable = _usable(candidates, b, q, ok)
-    rep, ins = repertoire.insert(state.repertoire, candidates.actions, b, q, usable, params.t_dist, cfg.k,
-                                 repertoire.NUM_NEAR, chunk=32, features=candidates.features)
-    evaluated = Evaluated(b, q, usable, ins.status, jnp.where(usable[:, None], aux, 0.0).astype(jnp.float32))
+    candidates, b, q, usable, kept, rep, ins, evaluated = generation_parts(state, cfg, params)
     stages = {
         "ask": jax.jit(lambda s: ask(s, cfg, params)),
         "rollouts": jax.jit(lambda s: task.evaluate_with_auxiliary(candidates.actions, candidates.key,
                                                                    candidates.rollout)),
-        "insert": jax.jit(lambda s: repertoire.insert(s.repertoire, candidates.actions, b, q, usable, params.t_dist,
-                                                      cfg.k, repertoire.NUM_NEAR, chunk=32,
-                                                      features=candidates.features)),
+        "insert": jax.jit(lambda s: inserted(s.repertoire, candidates.actions, b, q, usable, params, cfg, kept)),
         "archive + coverage": jax.jit(lambda s: (
             _archive(s.archive, s.repertoire, candidates.actions, evaluated, ins),
             _cover(s.coverage, s.repertoire, evaluated, ins, params.t_dist))),

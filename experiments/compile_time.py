@@ -18,14 +18,12 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import report
+from accelerator_timings import generation_parts, inserted
 
 import mqd_jax
 from mqd_jax import Config, init
-from mqd_jax.core import repertoire
-from mqd_jax.core.emitter import Evaluated
-from mqd_jax.core.run import _update_emitter, _usable, ask, get_task, run_generations
+from mqd_jax.core.run import _update_emitter, ask, get_task, run_generations
 
 
 def timed(fn: Callable[..., Any], *args: Any, static: tuple[int, ...] = ()) -> tuple[float, float, int]:
@@ -45,20 +43,12 @@ def rows(task: str, algorithm: str) -> dict[str, tuple[float, float, int]]:
     state = init(jax.random.PRNGKey(0), cfg)
     found = {"run chunk": timed(lambda s, p: run_generations(s, cfg, p, 10), state, params)}
     t = get_task(cfg)
-    candidates = ask(state, cfg, params)
-    b, q, ok, aux = t.evaluate_with_auxiliary(candidates.actions, candidates.key, candidates.rollout)
-    b, q, usable = _usable(candidates, b, q, ok)
-    # The features the repertoire keeps per skill (0.14; an older checkout has none).
-    kept = {"features": candidates.features} if hasattr(candidates, "features") else {}
-    rep, ins = repertoire.insert(state.repertoire, candidates.actions, b, q, usable, params.t_dist, cfg.k,
-                                 repertoire.NUM_NEAR, chunk=32, **kept)
-    evaluated = Evaluated(b, q, usable, ins.status, jnp.where(usable[:, None], aux, 0.0).astype(jnp.float32))
+    candidates, b, q, usable, kept, rep, _, evaluated = generation_parts(state, cfg, params)
     found["ask"] = timed(lambda s, p: ask(s, cfg, p), state, params)
     found["rollouts"] = timed(lambda a, k, m: t.evaluate_with_auxiliary(a, k, m), candidates.actions, candidates.key,
                               candidates.rollout)
     # Every array an argument: one closed over would be a constant, which XLA may fold at compile time.
-    found["insert"] = timed(lambda s, a, b, q, u, p, f: repertoire.insert(s.repertoire, a, b, q, u, p.t_dist, cfg.k,
-                                                                          repertoire.NUM_NEAR, chunk=32, **f),
+    found["insert"] = timed(lambda s, a, b, q, u, p, f: inserted(s.repertoire, a, b, q, u, p, cfg, f),
                             state, candidates.actions, b, q, usable, params, kept)
     found["update"] = timed(lambda s, c, e, r, p: _update_emitter(jax.random.PRNGKey(1), s, c, e, r, cfg, p),
                             state, candidates, evaluated, rep, params)

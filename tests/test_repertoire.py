@@ -212,7 +212,8 @@ def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim, window, monke
     def both(rep, b, q, usable, t_dist):
         near_d, near_i = repertoire._nearest_before(2, capacity, rep, b)
         return (repertoire._sequential_rule(rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist),
-                repertoire._parallel_rule(rep, b, near_d, near_i, q, usable, t_dist))
+                repertoire._parallel_rule(rep, b, near_d, near_i, q, usable, t_dist,
+                                          *repertoire._searched(b, usable, t_dist)))
 
     rng = np.random.default_rng(dim)
     reps, b, q, usable = _random_generations(rng, 96, capacity, pop, dim)

@@ -216,7 +216,6 @@ def _rounds(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: ja
     t2 = t_dist**2
     cands = jnp.arange(pop, dtype=jnp.int32)
     near_q = rep.qualities[jnp.maximum(near_i, 0)]
-    cols = jnp.maximum(cols, 0)
 
     def step(s: Insertion) -> Insertion:
         """Every candidate's step, given the outcomes `s` of the candidates before it."""
@@ -356,8 +355,10 @@ def _near_within(num_near: int, min_prefix: int, rep: Repertoire, behaviors: jax
 
 
 def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
-                   qualities: jax.Array, usable: jax.Array, t_dist: jax.Array) -> Insertion:
-    """The sequential rule's outcome (`_sequential_rule`'s arguments but d_cand), computed in data-parallel rounds.
+                   qualities: jax.Array, usable: jax.Array, t_dist: jax.Array, ok: jax.Array,
+                   axis: jax.Array) -> Insertion:
+    """The sequential rule's outcome (`_sequential_rule`'s arguments but d_cand), computed in data-parallel rounds;
+    ok, axis: `_searched`'s (the candidates searched for, the axis of the bands).
 
     Every candidate's step is a function of the outcomes of the candidates before it. A round computes every
     candidate's step at once from the previous round's outcomes (the first round: from none); the outcomes
@@ -372,7 +373,6 @@ def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, nea
     (`Insertion.slot` is meaningful where the candidate is alive at the end; `rounds`: the rounds taken, the
     last one the check that nothing changes).
     """
-    ok, axis = _searched(behaviors, usable, t_dist)
     order, lo, hi, widest = _bands(behaviors, ok, behaviors, ok, axis, t_dist)
 
     def rule(width: int, rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
@@ -496,8 +496,9 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     sizes = _prefix_sizes(capacity, min_prefix)
     # The actions and features are only written, at the slots the rule picks: they stay out of the prefix work.
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype), features=jnp.zeros((capacity, 0)))
-    near_d, near_i = _near_within(num_near, min_prefix, slim, behaviors, *_searched(behaviors, usable, t_dist), t_dist)
-    ins = _parallel_rule(rep, behaviors, near_d, near_i, qualities, usable, t_dist)
+    ok, axis = _searched(behaviors, usable, t_dist)  # once, for both band searches
+    near_d, near_i = _near_within(num_near, min_prefix, slim, behaviors, ok, axis, t_dist)
+    ins = _parallel_rule(rep, behaviors, near_d, near_i, qualities, usable, t_dist, ok, axis)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
     written = written_slots(ins, capacity)

@@ -179,7 +179,8 @@ def predict(model: ModelState, actions: jax.Array, task: Task,
 
 
 def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: Task, learning_rate: jax.Array,
-          batch_size: int, num_batches: int, feature_rows: int | None = None) -> tuple[ModelState, jax.Array]:
+          batch_size: int, num_batches: int, feature_rows: int | None = None,
+          features: jax.Array | None = None) -> tuple[ModelState, jax.Array]:
     """`num_batches` Adam steps at `learning_rate`, each member on its own mini-batches of `batch_size` rows.
 
     `data` is a repertoire (its valid rows are the prefix [0, count)) or a
@@ -187,9 +188,9 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     hold at least one row. With `feature_rows` the inputs include the task's
     features of `feature_rows` rows drawn uniformly (with replacement) from the
     data, on which the steps then draw their mini-batches (features can cost a
-    forward-kinematics pass per row: a repertoire that keeps its skills'
-    features gives them, else they are computed for those rows). Returns the new
-    state and the mean loss over the steps and members.
+    forward-kinematics pass per row: read from `features`, the data's rows'
+    features where known, else computed for those rows). Returns the new state
+    and the mean loss over the steps and members.
     """
     filled = data.count if isinstance(data, Repertoire) else jnp.minimum(data.total, data.qualities.shape[0])
     actions, targets = data.actions, normalize_targets(data.behaviors, data.qualities, task)
@@ -198,8 +199,7 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
                    num_batches)
     key, drawn = jax.random.split(key)
     rows = jax.random.randint(drawn, (feature_rows,), 0, filled)
-    kept = isinstance(data, Repertoire) and data.features.shape[1] > 0  # the skills' features, computed once each
-    x = inputs_with(actions[rows], data.features[rows], task) if kept else inputs(actions[rows], task, True)
+    x = inputs(actions[rows], task, True) if features is None else inputs_with(actions[rows], features[rows], task)
     return fit(model, key, x, targets[rows], jnp.int32(feature_rows), learning_rate, batch_size, num_batches)
 
 

@@ -171,11 +171,16 @@ class Surrogate:
             return model.inputs_with(actions, features, task)
         return model.inputs(actions, task, self.featured(task))
 
+    def _kept(self, repertoire: Repertoire, task: Task) -> jax.Array | None:
+        """The features [C, f] the repertoire keeps per skill (`Repertoire.features`, as `ModelEmitter.keeps_features`
+        asks) where they are this model's inputs, else None."""
+        kept = self.featured(task) and repertoire.features.shape[-1] == feature_dim(task)
+        return repertoire.features if kept else None
+
     def skill_inputs(self, repertoire: Repertoire, slots: jax.Array, task: Task) -> jax.Array:
-        """The networks' inputs of the skills at slots [N], from the features the repertoire keeps where it does
-        (`Repertoire.features`, as `ModelEmitter.keeps_features` asks)."""
-        kept = repertoire.features.shape[-1] == feature_dim(task) > 0
-        return self.inputs(repertoire.actions[slots], task, repertoire.features[slots] if kept else None)
+        """The networks' inputs of the skills at slots [N], from the features the repertoire keeps where it does."""
+        kept = self._kept(repertoire, task)
+        return self.inputs(repertoire.actions[slots], task, None if kept is None else kept[slots])
 
     def default_params(self) -> SurrogateParams:
         return SurrogateParams(jnp.float32(self.learning_rate))
@@ -255,7 +260,9 @@ class Surrogate:
             trained, loss = jax.lax.cond(
                 due & has_data, lambda: model.train(state.model, key, data, task, params.learning_rate,
                                                     self.batch_size, self.num_batches,
-                                                    self.feature_rows if self.featured(task) else None),
+                                                    self.feature_rows if self.featured(task) else None,
+                                                    self._kept(repertoire, task)
+                                                    if self.training_data == "repertoire" else None),
                 lambda: (state.model, jnp.float32(jnp.nan)))
         validity = state.validity
         if self.validity is not None:
