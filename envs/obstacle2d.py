@@ -60,6 +60,13 @@ def segment_blocked(p: jax.Array, q: jax.Array, boxes: jax.Array) -> jax.Array:
     return xp.any(inside & (t_lo < t_hi), axis=-1)
 
 
+def _length(steps: jax.Array) -> jax.Array:
+    """The steps' lengths [B, T] from steps [B, T, 2], with a zero gradient (not NaN) at a zero step."""
+    squared = (steps * steps).sum(axis=-1)
+    moved = squared > 0
+    return jnp.where(moved, jnp.sqrt(jnp.where(moved, squared, 1.0)), 0.0)
+
+
 def _graph(start: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nodes (start + box corners inside the arena) and their geodesic distance from start."""
     corners = np.concatenate([boxes[:, [0, 1]], boxes[:, [2, 1]], boxes[:, [0, 3]], boxes[:, [2, 3]]])
@@ -124,7 +131,7 @@ class Obstacle2D(Task):
         crossed = crosses.any(axis=1)
         first = jnp.where(crossed, jnp.argmax(crosses, axis=1), steps.shape[1])
         hit = jnp.take_along_axis(path, first[:, None, None], axis=1)[:, 0]
-        past = jnp.where(jnp.arange(steps.shape[1]) >= first[:, None], jnp.linalg.norm(steps, axis=-1), 0.0).sum(1)
+        past = jnp.where(jnp.arange(steps.shape[1]) >= first[:, None], _length(steps), 0.0).sum(1)
         return jnp.concatenate([2.0 * path[:, -1] - 1.0, jnp.where(crossed, 1.0, -1.0)[:, None], 2.0 * hit - 1.0,
                                 jnp.clip(past, 0.0, 2.0)[:, None] - 1.0], axis=1)
 

@@ -200,6 +200,36 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     assert (np.asarray(qualities) > np.asarray(predict(children)[1])).all()
 
 
+def test_a_child_whose_jacobian_is_not_finite_keeps_the_inner_candidate(linear_task):
+    """Steering differentiates in reverse mode here (d 2 < n 3), where a feature's masked branch (a norm at 0
+    under a `where`) gives a NaN Jacobian that forward mode would not: the children of the parent at such an
+    action are not steered (their rows keep the inner emitter's candidates), the other parent's are."""
+
+    class Masked(type(linear_task)):
+        def features(self, actions):
+            norm = jnp.linalg.norm(actions[:, 1:], axis=1, keepdims=True)
+            return jnp.where(actions[:, :1] > 0, norm, 0.0)
+
+    task = Masked(linear_task.action_low, linear_task.action_high, linear_task.behavior_low,
+                  linear_task.behavior_high)
+    emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8, features=True),
+                           steering=Steering(share=0.5))
+    state = emitter.init(jax.random.PRNGKey(0), task)
+    rep = skills_at(task, [[-0.5, 0.0, 0.0], [0.5, 0.3, 0.1]])  # the first: a masked norm at 0
+    params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
+    pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, task, params.part(params.emitter.inner),
+                                 400)
+    got, steered = emitter._steered(jax.random.PRNGKey(2), state, pool, rep, task, params, 100, jnp.bool_(False))
+    # The steering parents do not depend on the Jacobian: the same key with a finite one draws them.
+    parents = np.asarray(emitter.steering.steer(jax.random.PRNGKey(2), rep, linear_jacobian, task, params, 200)[1])
+    assert 0 < (parents == 0).sum() < 200  # both parents were drawn
+    assert np.isfinite(np.asarray(got.actions)).all()
+    np.testing.assert_array_equal(np.asarray(steered), np.r_[np.zeros(200, bool), parents == 1])
+    np.testing.assert_array_equal(got.actions[~np.asarray(steered)], pool.actions[~np.asarray(steered)])
+    forward = jax.vmap(jax.jacfwd(lambda a: emitter.surrogate.predict(state.surrogate, a, task)[0]))
+    assert np.isfinite(np.asarray(forward(rep.actions[:2]))).all()
+
+
 def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     """With no variation (sigmas 0) every child is its parent's action: IsoLine's and a mutation step's alike, so
     the parents a ModelEmitter's proposal names (IsoLine's first parents, the steered rows' steering parents,

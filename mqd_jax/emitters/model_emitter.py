@@ -97,7 +97,8 @@ class ModelEmitter(Emitter):
       fallback: a `Fallback`, or None to always follow the acquisition rule.
         Only with a ranking rule (`Budgeted`, `Diverse`), whose best rows come first.
       steering: a `steering.Steering`, or None for the inner emitter's pool alone. Only with a ranking rule
-        whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up.
+        whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up. A
+        child whose Jacobian is not finite (see `_steered`) is not steered: its row keeps the inner candidate.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -264,15 +265,19 @@ class ModelEmitter(Emitter):
         were."""
         pool_size = pool.actions.shape[0]
         count = self._steered_count(pool_size, num)
-        # Forward mode: reverse mode (d VJPs rather than n JVPs, 4x faster through PushCube's IK) turns a masked
-        # branch's NaN (a norm's gradient at 0 in 2D Obstacle's features) into a NaN Jacobian; forward mode does not.
-        jacobian = jax.vmap(jax.jacfwd(lambda a: self.surrogate.predict(state.surrogate, a, task)[0]))
+        # Reverse mode where the behavior has fewer dimensions than the action (d VJPs rather than n JVPs: 4x
+        # faster through PushCube's IK). Reverse mode turns a masked branch's NaN (a norm's gradient at 0 under a
+        # `where`) into a NaN Jacobian where forward mode does not: a child that is not finite is not steered, its
+        # row keeps the inner emitter's candidate.
+        differentiate = jax.jacrev if task.behavior_dim < task.action_dim else jax.jacfwd
+        jacobian = jax.vmap(differentiate(lambda a: self.surrogate.predict(state.surrogate, a, task)[0]))
         quality_gradient = jax.vmap(jax.grad(lambda a: self.surrogate.predict(state.surrogate, a, task)[1]))
         children, steering_parents = self.steering.steer(key, repertoire, jacobian, task, params, count,
                                                          quality_gradient)
         on = ~warm_up & (repertoire.count > 0)
         steered_rows = count if self._steering_pursuit is None else jnp.round(state.steering.share * count)
-        steered = on & (jnp.arange(pool_size) >= pool_size - steered_rows)
+        finite = jnp.zeros(pool_size, bool).at[pool_size - count:].set(jnp.isfinite(children).all(axis=1))
+        steered = on & finite & (jnp.arange(pool_size) >= pool_size - steered_rows)
 
         def spliced(rows: jax.Array, steered_values: jax.Array) -> jax.Array:
             """rows [P, ...] with the steered ones among the last `count` taken from steered_values [count, ...]."""
