@@ -3,8 +3,15 @@ controller, on either physics backend (`envs.physics`).
 
 The robot (`assets/hexapod.xml`): a 24 x 14 x 4 cm torso of 1 kg and six legs
 (front, middle, rear; left, right), each a hip that swings the leg forward and
-back (yaw) and a knee that lifts the foot; twelve position servos. The limits are
-in the datasheet of docs/extending.md ("The hexapod").
+back (yaw) and a knee that lifts the foot; twelve position servos modelled on the
+Robotis Dynamixel MX-28 (Cully et al. 2015's): stall torque 2.5 N m, no-load speed
+5.76 rad/s, the torque falling linearly with speed between them (a DC motor's
+back-EMF), critically damped. Neighbouring legs collide. The limits are in the
+datasheet, docs/data/hexapod_datasheet.md (`experiments/bench_hexapod.py --datasheet`).
+
+The step, 4 ms, is converged for the behaviors: a 4x finer step (1 ms) moves the
+final positions of random controllers by a median of about 10 mm over 3 s, under a
+quarter of hexapod_omni's `t_dist` (5 cm); at 10 ms it moved them 33 mm.
 
 An action is four numbers per leg (24, legs in the order front left, middle
 left, rear left, front right, middle right, rear right):
@@ -35,9 +42,12 @@ Tasks:
   the tangent, at the end point, of the circular arc from the start (facing +x)
   through it (the "omnidirectional" task: a good skill reaches its point
   following a circle, facing where it goes);
-* `hexapod_uni`: behavior = the six feet's contact-time fractions in [0, 1]^6 (a
-  foot is in contact while its centre is within `CONTACT_HEIGHT` of the floor);
-  quality = the forward (x) distance in m.
+  Within `STILL` of the start the arc has no direction: the tangent is the start's
+  heading (+x), so a robot that stays put scores how far it turned, -|yaw| / pi;
+* `hexapod_uni`: behavior = the six feet's contact-time fractions in [0, 1]^6: the
+  share of steps at which the simulator's contact list holds a contact between the
+  foot and the floor (a `contact` sensor per foot, on both backends); quality = the
+  forward (x) distance in m.
 """
 
 from __future__ import annotations
@@ -62,11 +72,14 @@ SWING, LIFT, OFFSET = 0.5, 0.6, 0.3  # rad
 PERIOD = 0.5  # s, one gait cycle
 RAMP = 0.25  # s over which the controller fades in
 SECONDS = 3.0
-SETTLE = 50  # steps the robot stands before a rollout starts (from the MJCF's pose)
+SETTLE = 0.5  # s the robot stands before a rollout starts (from the MJCF's pose)
 FALL_TILT = math.radians(60)
 FALL_HEIGHT = 0.04  # m, the torso's centre (it stands at 0.0995)
-CONTACT_HEIGHT = 0.02  # m, a foot's centre above the floor (its radius is 0.015)
-TORSO_POS, TORSO_QUAT, FEET = slice(0, 3), slice(3, 7), slice(7, 25)  # sensor columns
+# The servos: Robotis Dynamixel MX-28 at 12 V (the MJCF's forcerange and joint damping are these).
+STALL_TORQUE = 2.5  # N m
+NO_LOAD_SPEED = 55 * 2 * math.pi / 60  # rad/s (55 rpm)
+STILL = 1e-3  # m from the start within which hexapod_omni's arc has no direction
+TORSO_POS, TORSO_QUAT, FEET, CONTACTS = slice(0, 3), slice(3, 7), slice(7, 25), slice(25, 31)  # sensor columns
 # Tripod gait: legs 1, 3, 5 (front left, rear left, middle right) against 2, 4, 6; full swing and lift.
 TRIPOD = np.array([[1.0, 0.0, 1.0, 0.0], [1.0, 1.0, 1.0, 0.0], [1.0, 0.0, 1.0, 0.0],
                    [1.0, 1.0, 1.0, 0.0], [1.0, 0.0, 1.0, 0.0], [1.0, 1.0, 1.0, 0.0]], np.float32).reshape(-1)
@@ -79,9 +92,9 @@ def load() -> mujoco.MjModel:
 
 
 def start_data(model: mujoco.MjModel) -> mujoco.MjData:
-    """The robot standing at the origin: the MJCF's pose after `SETTLE` steps with the servos at zero."""
+    """The robot standing at the origin: the MJCF's pose after `SETTLE` seconds with the servos at zero."""
     data = mujoco.MjData(model)
-    for _ in range(SETTLE):
+    for _ in range(round(SETTLE / model.opt.timestep)):
         mujoco.mj_step(model, data)
     data.time = 0.0
     return data
@@ -116,6 +129,7 @@ class Hexapod(Task):
 
     table_ii_column = "robot"
     paper_seeds = 10
+    revision = 1  # 0.15: contacts from the simulator, MX-28 servos, legs that collide, a 4 ms step
 
     backend: str = "auto"
     seconds: float = SECONDS
@@ -147,8 +161,8 @@ class Hexapod(Task):
         return behaviors, qualities, mask & finite & upright
 
     def outcome(self, sensors: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Sensors [B, H, 25] (torso position, torso quaternion, six feet's positions) -> behaviors [B, d],
-        qualities [B]."""
+        """Sensors [B, H, 31] (torso position, torso quaternion, six feet's positions, six feet's contacts with
+        the floor) -> behaviors [B, d], qualities [B]."""
         raise NotImplementedError
 
     def frames(self, action: np.ndarray, width: int = 320, height: int = 240, every: int = 10) -> np.ndarray:
@@ -171,7 +185,9 @@ class Omni(Hexapod):
 
     def outcome(self, sensors: jax.Array) -> tuple[jax.Array, jax.Array]:
         xy = sensors[:, -1, :2]
-        tangent = 2 * jnp.arctan2(xy[:, 1], xy[:, 0])  # the arc from the origin facing +x through xy, at xy
+        moved = jnp.linalg.norm(xy, axis=1) > STILL
+        # The arc from the origin facing +x through xy, at xy (its start's heading where it has no direction).
+        tangent = jnp.where(moved, 2 * jnp.arctan2(xy[:, 1], xy[:, 0]), 0.0)
         error = jnp.angle(jnp.exp(1j * (_yaw(sensors[:, -1, TORSO_QUAT]) - tangent)))  # wrapped to [-pi, pi]
         return xy, -jnp.abs(error) / jnp.pi
 
@@ -184,8 +200,7 @@ class Uni(Hexapod):
     default_t_dist = 0.15  # contact fraction: a repertoire of 100 x 100 rollouts fits the default capacity
 
     def outcome(self, sensors: jax.Array) -> tuple[jax.Array, jax.Array]:
-        feet_z = sensors[..., FEET][..., 2::3]  # [B, H, 6]
-        return (feet_z <= CONTACT_HEIGHT).mean(axis=1), sensors[:, -1, 0]
+        return (sensors[..., CONTACTS] > 0).mean(axis=1), sensors[:, -1, 0]
 
 
 def _box(legs: int) -> tuple[tuple[float, ...], tuple[float, ...]]:

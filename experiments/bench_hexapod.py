@@ -6,8 +6,9 @@
 Per task, on C MuJoCo: `mujoco.rollout` alone on one generation's controls (Table II's population of random
 actions, their controls computed beforehand, the task's MjData per thread: what the C backend calls), and one
 jitted generation of QD and of the default "mqd" from repertoires grown for `--grow` generations
-(`generation_ratio.ms_per_generation`), as ratios to the rollouts alone. Also writes the datasheet of the robot
-(its MJCF and controller) that docs/extending.md shows (`--datasheet`).
+(`generation_ratio.ms_per_generation`), as ratios to the rollouts alone. Also writes the robot's datasheet (its
+MJCF, servos, controller and step; `--datasheet`, docs/data/hexapod_datasheet.md, linked from docs/design.md and
+docs/extending.md).
 """
 
 from __future__ import annotations
@@ -40,10 +41,29 @@ def rollout_ms(task_name: str, calls: int) -> float:
     return report.median_ms(lambda: rollout.rollout(c.model, c.datas, c.initial_state[None], ctrl), calls)
 
 
+def step_convergence(controllers: int = 64, finer: int = 4) -> tuple[float, float]:
+    """The medians over random controllers (3 s) of how far a `finer`x finer step moves the final position (m)
+    and the feet's contact fractions (Euclidean, as hexapod_uni's behaviors)."""
+    low, high = hexapod._box(len(hexapod.LEGS))
+    actions = jnp.asarray(np.random.default_rng(0).uniform(low, high, (controllers, len(low))), jnp.float32)
+    sensors = []
+    for timestep in (hexapod.load().opt.timestep, hexapod.load().opt.timestep / finer):
+        model = mujoco.MjModel.from_xml_path(hexapod.XML)
+        model.opt.timestep = timestep
+        start = physics.CRollout(model, hexapod.start_data(model))
+        ctrl = np.asarray(hexapod.controls(actions, round(hexapod.SECONDS / timestep), timestep), np.float64)
+        sensors.append(rollout.rollout(model, start.datas, start.initial_state[None], ctrl)[1])
+    fractions = [(s[..., hexapod.CONTACTS] > 0).mean(axis=1) for s in sensors]
+    return (float(np.median(np.linalg.norm(sensors[0][:, -1, :2] - sensors[1][:, -1, :2], axis=1))),
+            float(np.median(np.linalg.norm(fractions[0] - fractions[1], axis=1))))
+
+
 def datasheet() -> list[str]:
     """Markdown: the robot's limits, read from its MjModel and `envs.hexapod`'s controller."""
     model = hexapod.load()
     data = hexapod.start_data(model)
+    inertia = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, inertia)
     name = lambda kind, i: mujoco.mj_id2name(model, kind, i)  # noqa: E731
     torso = model.body("torso")
     size = model.geom("torso").size
@@ -52,6 +72,9 @@ def datasheet() -> list[str]:
     legs = [name(mujoco.mjtObj.mjOBJ_BODY, b) for b in range(model.nbody) if name(mujoco.mjtObj.mjOBJ_BODY, b)
             in hexapod.LEGS]
     deg = math.degrees
+    kp, damping = model.actuator_gainprm[hip_act.id][0], model.dof_damping[hip.dofadr[0]]
+    ratio = lambda joint: damping / (2 * math.sqrt(kp * inertia[joint.dofadr[0], joint.dofadr[0]]))  # noqa: E731
+    moved, fractions = step_convergence()
     rows = [
         ("mass", f"{model.body_subtreemass[torso.id]:.2f} kg (torso {model.body_mass[torso.id]:.2f} kg)"),
         ("torso", f"{200 * size[0]:.0f} x {200 * size[1]:.0f} x {200 * size[2]:.0f} cm"),
@@ -62,12 +85,22 @@ def datasheet() -> list[str]:
                         f"{100 * model.geom('front_left_foot').size[0]:.1f} cm radius"),
         ("hip range", f"{deg(hip.range[0]):.0f} to {deg(hip.range[1]):.0f} deg"),
         ("knee range", f"{deg(knee.range[0]):.0f} to {deg(knee.range[1]):.0f} deg"),
-        ("servos", f"{model.nu} position servos, kp {model.actuator_gainprm[hip_act.id][0]:.0f} N m/rad, "
-                   f"torque limit {model.actuator_forcerange[hip_act.id][1]:.0f} N m"),
-        ("joint damping, armature", f"{model.dof_damping[hip.dofadr[0]]} N m s/rad, "
-                                     f"{model.dof_armature[hip.dofadr[0]]} kg m^2"),
+        ("servos", f"{model.nu} position servos modelled on the Robotis Dynamixel MX-28 at 12 V (Cully et al. "
+                   f"2015's): stall torque {hexapod.STALL_TORQUE} N m, no-load speed {hexapod.NO_LOAD_SPEED:.2f} "
+                   "rad/s (55 rpm)"),
+        ("torque-speed line", f"kp {kp:.0f} N m/rad, clamped to +-{model.actuator_forcerange[hip_act.id][1]} N m, "
+                              f"minus the back-EMF damping {damping} N m s/rad: the torque falls linearly from the "
+                              f"stall torque at rest to 0 at {hexapod.STALL_TORQUE / damping:.2f} rad/s"),
+        ("reflected rotor inertia (armature)", f"{model.dof_armature[hip.dofadr[0]]} kg m^2"),
+        ("damping ratio (standing)", f"hip {ratio(hip):.2f}, knee {ratio(knee):.2f}"),
+        ("leg collisions", f"neighbouring legs (front-middle, middle-rear, each side): {model.npair} pairs of "
+                           f"geoms, pushed apart from {1000 * model.pair_margin[0]:.0f} mm"),
         ("foot friction", f"{model.geom('front_left_foot').friction[0]}"),
         ("timestep, integrator", f"{1000 * model.opt.timestep:.0f} ms, implicit-fast"),
+        ("step convergence (64 random controllers, 3 s)",
+         f"a 4x finer step moves the final position by a median {1000 * moved:.1f} mm (a quarter of hexapod_omni's "
+         f"t_dist: {250 * hexapod.Omni.default_t_dist:.1f} mm), the contact fractions by {fractions:.3f} (a quarter "
+         f"of hexapod_uni's: {hexapod.Uni.default_t_dist / 4:.4f})"),
         ("controller", f"per leg: swing {hexapod.SWING} rad x s, phase pi x p, lift {hexapod.LIFT} rad x l, "
                        f"offset {hexapod.OFFSET} rad x o; period {hexapod.PERIOD} s, faded in over {hexapod.RAMP} s"),
         ("action", f"{len(hexapod.LEGS) * hexapod.PARAMETERS} numbers: (s, p, l, o) per leg in [-1, 1] x [-1, 1] x "
@@ -75,7 +108,12 @@ def datasheet() -> list[str]:
         ("rollout", f"{hexapod.SECONDS:.0f} s ({round(hexapod.SECONDS / model.opt.timestep)} steps)"),
         ("fall (invalid)", f"tilt past {deg(hexapod.FALL_TILT):.0f} deg or torso centre below "
                            f"{100 * hexapod.FALL_HEIGHT:.0f} cm at any step"),
-        ("foot contact", f"foot centre within {100 * hexapod.CONTACT_HEIGHT:.0f} cm of the floor"),
+        ("foot contact", "a contact between the foot and the floor in the simulator's contact list (a `contact` "
+                         "sensor per foot, C MuJoCo and MJX alike)"),
+        ("a robot that stays put (hexapod_omni)", f"within {1000 * hexapod.STILL:.0f} mm of the start the arc's "
+                                                  "tangent is the start's heading: quality -abs(yaw) / pi"),
+        ("simplified", "12 joints (hip yaw and knee per leg) where Cully et al.'s robot has 18; the servos have "
+                       "no current limit, backlash, deadband or firmware PID; rigid links and feet on a flat floor"),
     ]
     return ["| quantity | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
 

@@ -88,8 +88,9 @@ def warmup(cfg: Config) -> int:
 
 def configured(spec: str, task: str, generations: int | None = None) -> Config:
     """The config a composition spec runs on `task` with Table II's settings: "NAME" (of `COMPOSITIONS`) or
-    "NAME:OPTION=VALUE,..." (options of the preset, `mqd_jax.emitters.presets`; the oracle takes "mqd"'s). Refused
-    (SystemExit) for an unknown name or option and for an invalid value."""
+    "NAME:OPTION=VALUE,..." (options of the preset, `mqd_jax.emitters.presets`, the oracle taking "mqd"'s, or fields
+    of the `Config` such as `capacity`). Refused (SystemExit) for an unknown name or option and for an invalid
+    value."""
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:
         raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
@@ -103,9 +104,11 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
             options[option] = ast.literal_eval(text)
         except (ValueError, SyntaxError):
             options[option] = text
+    fields = {f.name for f in dataclasses.fields(Config)} - {"algorithm", "algorithm_options", "task"}
+    changed = {field: options.pop(field) for field in fields & set(options)}
     length = {} if generations is None else {"max_generations": generations}
     try:
-        cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **length)
+        cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
         if name == "oracle":  # the preset's acquisition fed the true outcomes
             oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1), fallback=None)
             cfg = dataclasses.replace(cfg, algorithm=oracle, algorithm_options={})
@@ -328,7 +331,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--generations", type=int, default=None, help="override Table II's (quick checks)")
     parser.add_argument("--compositions", nargs="+", default=["qd", "mqd-paper", "mqd", "oracle"],
-                        help="names of COMPOSITIONS, each optionally with Config fields changed: NAME:FIELD=VALUE,...")
+                        help="names of COMPOSITIONS, each optionally with the preset's options or Config fields "
+                             "changed: NAME:OPTION=VALUE,...")
     parser.add_argument("--sweep", nargs="+", default=None,
                         help="read the presets of `mqd sweep` folders instead of running; DIR=SUFFIX names "
                         "that folder's runs PRESET-SUFFIX (a variant beside the same presets in another folder)")

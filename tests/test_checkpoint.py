@@ -76,6 +76,19 @@ def test_mismatched_checkpoints_are_refused(tmp_path, uninterrupted):
         checkpoint.run_with_checkpoints(KEY, dataclasses.replace(CFG, capacity=512), path, every=5)
 
 
+def test_a_checkpoint_of_another_revision_of_its_task_is_refused(tmp_path, uninterrupted, monkeypatch):
+    """A task whose rollouts changed (its revision raised) refuses the skills of its earlier revision; a file
+    without a revision (before 0.15) holds revision 0."""
+    path = str(tmp_path / "run.ckpt")
+    checkpoint.save(path, *uninterrupted, CFG, KEY)
+    assert checkpoint.read(path)["task_revision"] == 0
+    monkeypatch.setattr(type(get_task(CFG)), "revision", 1)
+    with pytest.raises(ValueError, match=r"revision 0 of the task 'obstacle2d', which is at revision 1 here"):
+        checkpoint.load(path, CFG, KEY)
+    checkpoint.save(path, *uninterrupted, CFG, KEY)
+    checkpoint.load(path, CFG, KEY)  # the same revision loads
+
+
 def test_corrupt_checkpoints_are_refused(tmp_path, uninterrupted):
     path = tmp_path / "run.ckpt"
     checkpoint.save(str(path), *uninterrupted, CFG, KEY)

@@ -82,6 +82,8 @@ class Task:
       paper_seeds: runs per algorithm in the paper's experiments (`mqd sweep`'s default).
       paper_coverage: the paper's Table I, {preset: (mean, std) final coverage};
         empty for tasks the paper does not have.
+      revision: raise it when what the task's rollouts give changes (its physics, behaviors or qualities): a
+        checkpoint written at another revision is then refused, not continued with skills of the old task.
     """
 
     quality_range: ClassVar[tuple[float, float]] = (0.0, 1.0)
@@ -90,6 +92,7 @@ class Task:
     default_t_dist: ClassVar[float | None] = None
     paper_seeds: ClassVar[int] = 25
     paper_coverage: ClassVar[Mapping[str, tuple[float, float]]] = {}
+    revision: ClassVar[int] = 0
 
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]

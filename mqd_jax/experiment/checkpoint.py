@@ -5,11 +5,12 @@ SHA-256 checksum and a body holding the run's config (every field), the key
 the run started from, the whole `State` (repertoire, rejected archive, coverage
 grid, the emitter's state (M-QD: model parameters and Adam state), key,
 generation, evaluation count), the
-per-generation metrics so far and the provenance (package versions, git
-revision). `save` writes a temporary file and renames it over the old one, so a
-crash leaves either the previous checkpoint or the new one, never half of one.
+per-generation metrics so far, the provenance (package versions, git
+revision) and the task's `revision` (since 0.15; 0 before). `save` writes a
+temporary file and renames it over the old one, so a crash leaves either the
+previous checkpoint or the new one, never half of one.
 `load` refuses, with a ValueError, a file that is not a checkpoint, is corrupt
-or was altered (checksum), and one written for another config, task or key.
+or was altered (checksum), and one written for another config, task, task revision or key.
 Files of the older formats 1 to 5 (1 and 2 without checksum; 1 to 3 with
 M-QD's model outside the emitter's state; 1 to 4 with one network where the
 model is now an ensemble; 1 to 5 with the model beside the emitter's other
@@ -168,6 +169,7 @@ def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array)
         "state": serialization.to_state_dict(jax.device_get(state)),
         "metrics": {k: np.asarray(v) for k, v in metrics.items()},
         "provenance": provenance(),
+        "task_revision": get_task(cfg).revision,
     })
     payload = {"format": FORMAT, "sha256": hashlib.sha256(body).hexdigest(), "body": body}
     write_atomically(path, serialization.msgpack_serialize(payload))
@@ -216,6 +218,11 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
         raise Refused(path, f"it was written with another config ({differ})")
     if not np.array_equal(payload["key"], np.asarray(key)):
         raise Refused(path, "it was written by a run started from another key")
+    revision, now = payload.get("task_revision", 0), get_task(cfg).revision  # before 0.15: every task's 0
+    if revision != now:
+        raise Refused(path, f"it holds skills of revision {revision} of the task {cfg.task_name!r}, which is at "
+                            f"revision {now} here (its rollouts give other outcomes: see CHANGELOG.md); run it "
+                            "afresh, or resume it with the version of mqd-jax that wrote it")
     key = np.asarray(key)
     _register_pytrees()
     # Shapes only; a batch of runs (keys [S, 2]) saved its states with a leading [S] axis.
