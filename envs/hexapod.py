@@ -11,7 +11,8 @@ datasheet, docs/data/hexapod_datasheet.md (`experiments/bench_hexapod.py --datas
 
 The step, 4 ms, is converged for the behaviors: a 4x finer step (1 ms) moves the
 final positions of random controllers by a median of about 10 mm over 3 s, under a
-quarter of hexapod_omni's `t_dist` (5 cm); at 10 ms it moved them 33 mm.
+quarter of hexapod_omni's `t_dist` (5 cm); 0.14's robot at 10 ms: 51 mm
+(`experiments/hexapod_fidelity.py`).
 
 An action is four numbers per leg (24, legs in the order front left, middle
 left, rear left, front right, middle right, rear right):
@@ -197,7 +198,9 @@ class Uni(Hexapod):
     """hexapod_uni: behavior = the six feet's contact-time fractions; quality = forward distance (m)."""
 
     quality_range = (-2.0, 2.0)  # m in 3 s; the tripod gait walks 1.3
-    default_t_dist = 0.15  # contact fraction: a repertoire of 100 x 100 rollouts fits the default capacity
+    # Contact fraction. "mqd" fills the default capacity (4,096) late in Table II's 100 x 100 rollouts: raise it
+    # to keep every niche (docs/results.md, "The hexapod").
+    default_t_dist = 0.15
 
     def outcome(self, sensors: jax.Array) -> tuple[jax.Array, jax.Array]:
         return (sensors[..., CONTACTS] > 0).mean(axis=1), sensors[:, -1, 0]
