@@ -53,6 +53,7 @@ Tasks:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -84,6 +85,10 @@ TORSO_POS, TORSO_QUAT, FEET, CONTACTS = slice(0, 3), slice(3, 7), slice(7, 25), 
 # Tripod gait: legs 1, 3, 5 (front left, rear left, middle right) against 2, 4, 6; full swing and lift.
 TRIPOD = np.array([[1.0, 0.0, 1.0, 0.0], [1.0, 1.0, 1.0, 0.0], [1.0, 0.0, 1.0, 0.0],
                    [1.0, 1.0, 1.0, 0.0], [1.0, 0.0, 1.0, 0.0], [1.0, 1.0, 1.0, 0.0]], np.float32).reshape(-1)
+# Neighbouring legs driven into each other: every hip swings fully, the front legs' hips offset back and the
+# middle legs' forward, the middle legs swinging against the front ones.
+ONTO_MIDDLE = np.array([[1.0, 0.0, 0.0, -1.0], [-1.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0],
+                        [1.0, 0.0, 0.0, -1.0], [-1.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]], np.float32).reshape(-1)
 
 
 @functools.cache
@@ -99,6 +104,28 @@ def start_data(model: mujoco.MjModel) -> mujoco.MjData:
         mujoco.mj_step(model, data)
     data.time = 0.0
     return data
+
+
+def finer_step_shift(model: mujoco.MjModel, actions: np.ndarray, finer: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of actions [B, 24], rolled out for `SECONDS` on C MuJoCo: how far the final (x, y) (m) and the feet's
+    contact fractions (Euclidean, as hexapod_uni's behaviors) move when `model`'s step is `finer` times finer."""
+    outcomes = []
+    for timestep in (model.opt.timestep, model.opt.timestep / finer):
+        stepped = copy.copy(model)
+        stepped.opt.timestep = timestep
+        ctrl = np.asarray(controls(jnp.asarray(actions), round(SECONDS / timestep), timestep))
+        _, sensors, _ = physics.CRollout(stepped, start_data(stepped))(ctrl, np.ones(len(actions), bool))
+        outcomes.append((sensors[:, -1, :2], (sensors[..., CONTACTS] > 0).mean(axis=1)))
+    (xy, fractions), (finer_xy, finer_fractions) = outcomes
+    return np.linalg.norm(xy - finer_xy, axis=1), np.linalg.norm(fractions - finer_fractions, axis=1)
+
+
+def leg_overlap(model: mujoco.MjModel, data: mujoco.MjData) -> float:
+    """The deepest overlap (m; 0 if none) of the legs that `assets/hexapod.xml` lets collide (its <pair>s) in `data`
+    of `model`: this robot, with its legs' collisions or without them."""
+    pairs = load()
+    return max(0.0, *(-mujoco.mj_geomDistance(model, data, a, b, 0.05, None)
+                      for a, b in zip(pairs.pair_geom1, pairs.pair_geom2, strict=True)))
 
 
 def controls(actions: jax.Array, steps: int, timestep: float) -> jax.Array:

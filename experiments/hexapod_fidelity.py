@@ -12,15 +12,14 @@ collisions, with kp 8, damping 0.1 N m s/rad, a 2 N m limit and a 10 ms step). F
   on a foot against the robot's weight (median and largest over the gaits), the share of steps with no foot
   on the floor, the share of foot-steps with a contact in MuJoCo's contact list and the share 0.12-0.14's
   rule counted down (the foot's centre within 2 cm of the floor);
-* the same gaits at a 4x finer step: the median distance between the final positions;
-* a gait that swings the front legs back onto the middle ones: the deepest overlap of neighbouring legs
-  (MuJoCo's geometric distance).
+* the same gaits at a 4x finer step: how far the final positions move (`hexapod.finer_step_shift`);
+* a gait that swings the front legs back onto the middle ones (`hexapod.ONTO_MIDDLE`): the deepest overlap of
+  neighbouring legs (`hexapod.leg_overlap`).
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 
 import jax.numpy as jnp
 import mujoco
@@ -30,8 +29,6 @@ import report
 from envs import hexapod
 
 OLD_HEIGHT = 0.02  # m: 0.12-0.14 counted a foot down while its centre was this close to the floor
-NEIGHBOURS = (("front_left", "middle_left"), ("middle_left", "rear_left"), ("front_right", "middle_right"),
-              ("middle_right", "rear_right"))
 
 
 def old_servos(model: mujoco.MjModel) -> mujoco.MjModel:
@@ -57,14 +54,14 @@ def step_response(model: mujoco.MjModel) -> tuple[float, float]:
 
 
 def gaits(model: mujoco.MjModel, actions: np.ndarray, seconds: float = hexapod.SECONDS) -> dict[str, np.ndarray]:
-    """Per gait: final (x, y), fastest joint (rad/s), peak foot force (N), steps with no foot down, foot-steps
-    with a contact and foot-steps within `OLD_HEIGHT`."""
+    """Per gait: fastest joint (rad/s), peak foot force (N), steps with no foot down, foot-steps with a contact
+    and foot-steps within `OLD_HEIGHT`."""
     feet = [model.geom(f"{leg}_foot").id for leg in hexapod.LEGS]
     sites = [model.site(f"{leg}_foot").id for leg in hexapod.LEGS]
     horizon = round(seconds / model.opt.timestep)
     ctrl = np.asarray(hexapod.controls(jnp.asarray(actions), horizon, model.opt.timestep))
     force = np.zeros(6)
-    out: dict[str, list] = {k: [] for k in ("xy", "speed", "force", "airborne", "contact", "near")}
+    out: dict[str, list] = {k: [] for k in ("speed", "force", "airborne", "contact", "near")}
     for row in ctrl:
         data = hexapod.start_data(model)
         speed = peak = airborne = contact = near = 0.0
@@ -83,7 +80,6 @@ def gaits(model: mujoco.MjModel, actions: np.ndarray, seconds: float = hexapod.S
             airborne += not down
             contact += len(down)
             near += (data.site_xpos[sites, 2] <= OLD_HEIGHT).sum()
-        out["xy"].append(data.qpos[:2].copy())
         for k, v in (("speed", speed), ("force", peak), ("airborne", airborne / horizon),
                      ("contact", contact / (6 * horizon)), ("near", near / (6 * horizon))):
             out[k].append(v)
@@ -91,22 +87,14 @@ def gaits(model: mujoco.MjModel, actions: np.ndarray, seconds: float = hexapod.S
 
 
 def deepest_overlap(model: mujoco.MjModel) -> float:
-    """The deepest overlap (m) of neighbouring legs in 1.5 s of a gait swinging the front legs onto the middle
-    ones."""
-    action = np.zeros((len(hexapod.LEGS), hexapod.PARAMETERS), np.float32)
-    action[:, 0] = 1.0
-    action[[0, 3], 3] = -1.0
-    action[[1, 4], 3] = 1.0
-    action[[1, 4], 0] = -1.0
-    pairs = [(model.geom(f"{a}_{x}").id, model.geom(f"{b}_{y}").id) for a, b in NEIGHBOURS
-             for x, y in itertools.product(("thigh", "shin", "foot"), repeat=2)]
+    """The deepest overlap (m) of neighbouring legs in 1.5 s of `hexapod.ONTO_MIDDLE`."""
     data = hexapod.start_data(model)
     horizon = round(1.5 / model.opt.timestep)
     deepest = 0.0
-    for u in np.asarray(hexapod.controls(jnp.asarray(action.reshape(1, -1)), horizon, model.opt.timestep))[0]:
+    for u in np.asarray(hexapod.controls(jnp.asarray(hexapod.ONTO_MIDDLE[None]), horizon, model.opt.timestep))[0]:
         data.ctrl[:] = u
         mujoco.mj_step(model, data)
-        deepest = max(deepest, *(-mujoco.mj_geomDistance(model, data, a, b, 0.05, None) for a, b in pairs))
+        deepest = max(deepest, hexapod.leg_overlap(model, data))
     return deepest
 
 
@@ -135,9 +123,7 @@ def main() -> None:
         model = make()
         overshoot, peak_speed = step_response(model)
         coarse = gaits(model, actions)
-        finer = make()
-        finer.opt.timestep /= 4
-        moved = np.linalg.norm(coarse["xy"] - gaits(finer, actions)["xy"], axis=1)
+        moved, _ = hexapod.finer_step_shift(model, actions)
         speed, force = coarse["speed"] / hexapod.NO_LOAD_SPEED, coarse["force"] / weight
         overlap = f"{1000 * deepest_overlap(model):.1f} mm"
         lines.append(f"| {name} | {100 * overshoot:.0f}%, {peak_speed:.1f} rad/s | {np.median(speed):.2f}, "

@@ -101,44 +101,27 @@ def test_the_step_is_converged():
     """A 4x finer step (1 ms) moves the final positions of random controllers over 3 s by a median of at most a
     quarter of hexapod_omni's t_dist, and their contact fractions by a median of at most a quarter of
     hexapod_uni's."""
-    actions = jnp.asarray(random_actions(16, 2))
-    sensors = []
-    for timestep in (hexapod.load().opt.timestep, hexapod.load().opt.timestep / 4):
-        model = mujoco.MjModel.from_xml_path(hexapod.XML)
-        model.opt.timestep = timestep
-        ctrl = np.asarray(hexapod.controls(actions, round(hexapod.SECONDS / timestep), timestep), np.float64)
-        sensors.append(rollout.rollout(model, [mujoco.MjData(model) for _ in range(2)], start_state(model)[None],
-                                       ctrl)[1])
-    coarse, fine = sensors
-    moved = np.linalg.norm(coarse[:, -1, :2] - fine[:, -1, :2], axis=1)
+    moved, fractions = hexapod.finer_step_shift(hexapod.load(), random_actions(16, 2))
     assert np.median(moved) <= hexapod.Omni.default_t_dist / 4
-    fractions = [(s[..., hexapod.CONTACTS] > 0).mean(axis=1) for s in sensors]
-    assert np.median(np.linalg.norm(fractions[0] - fractions[1], axis=1)) <= hexapod.Uni.default_t_dist / 4
+    assert np.median(fractions) <= hexapod.Uni.default_t_dist / 4
 
 
 def test_neighbouring_legs_do_not_overlap():
-    """A gait that swings the front legs back onto the middle ones, forward: without the legs' collisions they
-    overlap by more than 1 cm; with them, never by more than 0.5 mm (MuJoCo's geometric distance)."""
-    action = np.zeros((len(hexapod.LEGS), hexapod.PARAMETERS), np.float32)
-    action[:, 0] = 1.0
-    action[[0, 3], 3] = -1.0  # the front legs' hips back
-    action[[1, 4], 3] = 1.0  # the middle legs' hips forward, swinging against them
-    action[[1, 4], 0] = -1.0
+    """A gait that swings the front legs back onto the middle ones (`ONTO_MIDDLE`): without the legs' collisions
+    they overlap by more than 1 cm; with them, never by more than 0.5 mm (MuJoCo's geometric distance)."""
     xml = open(hexapod.XML).read()
     free = xml[:xml.index("  <contact>")] + xml[xml.index("  </contact>") + len("  </contact>"):]
 
     def deepest_overlap(model):
         data = hexapod.start_data(model)
         horizon = round(1.5 / model.opt.timestep)
-        ctrl = np.asarray(hexapod.controls(jnp.asarray(action.reshape(1, -1)), horizon, model.opt.timestep))[0]
-        pairs = [(model.geom(f"{a}_{x}").id, model.geom(f"{b}_{y}").id) for a, b in (("front_left", "middle_left"),
-                 ("front_right", "middle_right")) for x in ("thigh", "shin", "foot") for y in ("thigh", "shin", "foot")]
+        ctrl = np.asarray(hexapod.controls(jnp.asarray(hexapod.ONTO_MIDDLE[None]), horizon, model.opt.timestep))[0]
         deepest = 0.0
         for t in range(horizon):
             data.ctrl[:] = ctrl[t]
             mujoco.mj_step(model, data)
             if t % 2 == 0:
-                deepest = max(deepest, *(-mujoco.mj_geomDistance(model, data, g1, g2, 0.05, None) for g1, g2 in pairs))
+                deepest = max(deepest, hexapod.leg_overlap(model, data))
         return deepest
 
     assert deepest_overlap(mujoco.MjModel.from_xml_string(free)) > 0.01
