@@ -6,6 +6,16 @@
 * `rastrigin`: QD's Rastrigin projection (20 dimensions).
 * `arm_elbow`, `rugged_arm_elbow`: the two arms with features for M-QD's model (`Task.features`): where the
   middle joint (the elbow) is, the forward kinematics of half the arm: cheap to know, and only part of the answer.
+
+Written for issue #58 after "mqd" was settled, none with features (what a user's own task declares):
+
+* `chain`: a longer kinematic chain: 16 joints, links shrinking by 0.9 each, quality = minus the mean |angle|.
+* `noisy_chain`: the chain with Gaussian noise in every rollout (0.01 on the tip, 0.02 on the quality).
+* `holed_chain`: the chain whose rollouts are invalid (no outcome) where the first two angles sum above 0: half
+  of the action space.
+* `folded`: a folded many-to-one map of 8 actions: each behavior is a tent map folded 3 times of a fixed random
+  projection, so that many far-apart actions share a behavior.
+* `folded_noisy_holed`: the folded map with noise and an invalid band, kept unseen until the end of #58.
 """
 
 from __future__ import annotations
@@ -97,11 +107,80 @@ def make_rastrigin(dims: int = 20) -> RastriginProjection:
     return RastriginProjection((-5.12,) * dims, (5.12,) * dims, (0.0, 0.0), (1.0, 1.0))
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class Chain(Task):
+    """A planar chain of n joints whose links shrink by 0.9 each (`chain`), with optional noise in every rollout
+    (`noise`: the tip's and the quality's standard deviations) and an invalid half (`holed`: a0 + a1 > 0)."""
+
+    noise: tuple[float, float] = (0.0, 0.0)
+    holed: bool = False
+    quality_range = (-1.6, 0.0)
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        n = actions.shape[1]
+        links = 0.9 ** jnp.arange(n)
+        heading = jnp.cumsum(actions, axis=1)
+        tip = 0.5 + 0.5 / links.sum() * jnp.stack([(links * jnp.cos(heading)).sum(1),
+                                                   (links * jnp.sin(heading)).sum(1)], axis=1)
+        quality = -jnp.abs(actions).mean(1)
+        if self.noise != (0.0, 0.0):
+            k_tip, k_quality = jax.random.split(key)
+            tip = tip + self.noise[0] * jax.random.normal(k_tip, tip.shape)
+            quality = quality + self.noise[1] * jax.random.normal(k_quality, quality.shape)
+        valid = actions[:, 0] + actions[:, 1] <= 0 if self.holed else jnp.ones(actions.shape[0], bool)
+        return jnp.clip(tip, 0.0, 1.0), quality, valid
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(points - 0.5, axis=-1) <= 0.5
+
+
+def make_chain(joints: int = 16, noise: tuple[float, float] = (0.0, 0.0), holed: bool = False) -> Chain:
+    return Chain((-np.pi / 2,) * joints, (np.pi / 2,) * joints, (0.0, 0.0), (1.0, 1.0), noise=noise, holed=holed)
+
+
+def tent(x: jax.Array, folds: int) -> jax.Array:
+    """x in [0, 1] folded `folds` times (a tent map of 2^folds teeth): many-to-one, continuous, in [0, 1]."""
+    y = x
+    for _ in range(folds):
+        y = 1.0 - jnp.abs(2.0 * y - 1.0)
+    return y
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Folded(Task):
+    """Behavior = a tent map folded `folds` times of a fixed random projection of 8 actions in [-1, 1] (many
+    actions per behavior); quality = minus the actions' mean square; optional noise and an invalid band."""
+
+    folds: int = 3
+    noise: tuple[float, float] = (0.0, 0.0)
+    holed: bool = False
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        n = actions.shape[1]
+        w = jax.random.normal(jax.random.PRNGKey(58), (n, 2)) / np.sqrt(n)
+        behavior = tent(jnp.clip(0.5 + 0.25 * actions @ w, 0.0, 1.0), self.folds)
+        quality = 1.0 - (actions**2).mean(1)
+        if self.noise != (0.0, 0.0):
+            k_b, k_q = jax.random.split(key)
+            behavior = behavior + self.noise[0] * jax.random.normal(k_b, behavior.shape)
+            quality = quality + self.noise[1] * jax.random.normal(k_q, quality.shape)
+        valid = jnp.abs(actions[:, 2] - 0.3) > 0.35 if self.holed else jnp.ones(actions.shape[0], bool)
+        return jnp.clip(behavior, 0.0, 1.0), quality, valid
+
+
+def make_folded(dims: int = 8, folds: int = 3, noise: tuple[float, float] = (0.0, 0.0),
+                holed: bool = False) -> Folded:
+    return Folded((-1.0,) * dims, (1.0,) * dims, (0.0, 0.0), (1.0, 1.0), folds=folds, noise=noise, holed=holed)
+
+
 # Tasks defined here, registered by the experiments that name them.
 EXPERIMENT_TASKS = {
     "arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin,
     "arm_elbow": lambda: ElbowArm(*dataclasses.astuple(make_arm())),
     "rugged_arm_elbow": lambda: ElbowRuggedArm(*dataclasses.astuple(make_rugged_arm())),
+    "chain": make_chain, "noisy_chain": lambda: make_chain(noise=(0.01, 0.02)),
+    "holed_chain": lambda: make_chain(holed=True), "folded": make_folded,
+    "folded_noisy_holed": lambda: make_folded(noise=(0.01, 0.02), holed=True),
 }
 
 

@@ -120,8 +120,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
         openers.append(opener.mean())
         distances.append(np.linalg.norm(np.asarray(behaviors) - np.asarray(rep.behaviors)[parents], axis=1)[
             np.asarray(valid)])
-        plain, anchored = emitter.surrogate.predictions(state.emitter.surrogate, pool.actions, rep, task,
-                                                        pool.parents)
+        plain, anchored = emitter.predictions(state.emitter, pool.actions, rep, task, pool.parents)
         scored = {f"run's model, {name}, {s}": v
                   for name, y in (("plain", plain), ("anchored", anchored))
                   for s, v in _scores(np.asarray(y.mean(0)[:, :-1]), skills).items()}

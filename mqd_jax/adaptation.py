@@ -85,7 +85,7 @@ def _linear_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
 
 def _model_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
     """J [G, d, n] of the model's behavior prediction (real units) at each a_j."""
-    behavior = lambda a: cfg.emitter.surrogate.predict(state.emitter.surrogate, a, task)[0]  # noqa: E731
+    behavior = lambda a: cfg.emitter.model.predict(state.emitter.surrogate, a, task)[0]  # noqa: E731
     return lambda a, b: jax.vmap(jax.jacfwd(behavior))(a)
 
 
@@ -141,7 +141,8 @@ def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task,
         return
     if (np.asarray(state.repertoire.count) == 0).any():
         raise ValueError("the repertoire is empty: run the search first")
-    if method == "model" and (np.asarray(state.emitter.surrogate.model.steps) == 0).any():
+    # The model emitter fits its surrogate after every generation once warm-up is over.
+    if method == "model" and (np.asarray(state.emitter.evaluations) < cfg.emitter.warmup_samples).any():
         raise ValueError("method 'model' needs a trained model: this state's model never trained "
                          "(an M-QD run that did not finish warm-up)")
 

@@ -140,7 +140,7 @@ def test_greedy_diverse_by_novelty_by_hand():
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, 2), [1, 0])
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, 1), [0, 1])
     with pytest.raises(ValueError, match=r"Diverse\.neighbours=6 needs"):
-        Diverse(1, neighbours=6).select(pool, rep, wanted, jnp.bool_(False), Config().params(), 2)
+        Diverse(1, neighbours=6).select(jax.random.PRNGKey(0), (), pool, rep, wanted, Config().params(), 2)
 
 
 def test_ensemble_members_train_as_independent_networks(linear_task):
@@ -182,14 +182,14 @@ class _Known(Surrogate):
         return actions[None] + shift
 
 
-def knowing(acquisition, k, **surrogate):
-    """A model emitter whose surrogate is `_Known(**surrogate)`."""
-    return ModelEmitter(IsoLine(), acquisition, _Known(**surrogate), k=k)
+def knowing(acquisition, k, **anchoring):
+    """A model emitter whose surrogate is `_Known()`, anchored as `anchoring` says."""
+    return ModelEmitter(IsoLine(), acquisition, _Known(), k=k, **anchoring)
 
 
 def anchored(emitter, **changes):
-    """`emitter` with its surrogate's anchoring settings changed."""
-    return dataclasses.replace(emitter, surrogate=dataclasses.replace(emitter.surrogate, **changes))
+    """`emitter` with its anchoring settings changed."""
+    return dataclasses.replace(emitter, **changes)
 
 
 NO_STATE = ModelEmitterState(surrogate=SurrogateState(model=None), inner=(), evaluations=jnp.int32(0))
@@ -237,7 +237,7 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     np.testing.assert_allclose(got.nearest_quality, np.asarray(rep.qualities)[nearest], rtol=1e-6)
     np.testing.assert_allclose(got.neighbours, np.sort(d, 1)[:, :3], rtol=1e-6)
     np.testing.assert_allclose(got.novelty, np.sort(d, 1)[:, :3].mean(1), rtol=1e-6)
-    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     state = state.replace(evaluations=jnp.int32(emitter.warmup_samples))  # past warm-up: the rule chooses
     proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task,
                                Params(jnp.float32(0.02), emitter.default_params()), 3)
@@ -252,7 +252,7 @@ def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
     emitter = knowing(Diverse(), 1, anchoring="always")
-    assert emitter.surrogate.anchor == "parent"
+    assert emitter.anchor == "parent"
     # Row 0's parent is the skill farther from it in action space (slot 1), row 1's slot 0; row 2 has none.
     got = emitter.judge(NO_STATE, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
     for i, j in ((0, 1), (1, 0)):
@@ -271,10 +271,10 @@ def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     nearest = anchored(emitter, anchor="nearest").judge(NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(emitter.judge(NO_STATE, pool, rep, linear_task).behaviors, nearest.behaviors)
     assert not np.allclose(got.behaviors[:2], nearest.behaviors[:2])
-    with pytest.raises(ValueError, match=r"Surrogate\.anchoring='nearest' is invalid"):
-        Surrogate(anchoring="nearest")
-    with pytest.raises(ValueError, match=r"Surrogate\.anchor="):
-        Surrogate(anchor="first")
+    with pytest.raises(ValueError, match=r"ModelEmitter\.anchoring='nearest' is invalid"):
+        ModelEmitter(IsoLine(), anchoring="nearest")
+    with pytest.raises(ValueError, match=r"ModelEmitter\.anchor="):
+        ModelEmitter(IsoLine(), anchor="first")
 
 
 def test_greedy_diverse_by_hand():
@@ -297,10 +297,10 @@ def test_greedy_diverse_by_hand():
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 5, quality_share=1.0),
                                   [3, 0, 2, 1, 4])
     # Budgeted ranking has no imagined skills: both duplicates before 2.
-    ranked = Budgeted(1).select(pool.replace(novelty=jnp.array([1.0, 0.99, 0.8, 0.0, 0.001]),
+    ranked = Budgeted(1).select(jax.random.PRNGKey(0), (),
+                                pool.replace(novelty=jnp.array([1.0, 0.99, 0.8, 0.0, 0.001]),
                                              improvement=jnp.array([-0.4, -0.4, -0.4, 0.4, -0.3])),
-                                rep, wanted, jnp.bool_(False), Params(jnp.float32(0.02),
-                                                                      Budgeted(1, t_nov=0.05).default_params()), 5)[0]
+                                rep, wanted, Params(jnp.float32(0.02), Budgeted(1, t_nov=0.05).default_params()), 5)[0]
     np.testing.assert_array_equal(ranked[:3], [0, 1, 2])
     # Optimism: a spread of 0.2 lifts 4 (0.001 from the skill) above t_dist, ahead of the improvers.
     rows = greedy_diverse(pool.replace(spread=jnp.array([0, 0, 0, 0, 0.2])), wanted, jnp.float32(0.05), 1.0, 5)
@@ -314,16 +314,13 @@ def test_greedy_diverse_by_hand():
     assert int(greedy_diverse(nan, wanted, jnp.float32(0.05), 0.0, 5)[-1]) == 0
 
 
-def test_diverse_selects_num_distinct_rows_and_passes_warm_up_through():
+def test_diverse_selects_num_distinct_rows():
     rep = repertoire_of([[0.5, 0.5]], [0.5])
     pool = judged(jax.random.uniform(jax.random.PRNGKey(0), (40, 2)), jax.random.uniform(jax.random.PRNGKey(1), (40,)),
                   rep)
     params = Config().params()
-    rows, rollout, discarded = Diverse(4).select(pool, rep, jnp.ones(40, bool), jnp.bool_(False), params, 10)
+    rows, rollout, discarded = Diverse(4).select(jax.random.PRNGKey(0), (), pool, rep, jnp.ones(40, bool), params, 10)
     assert len(set(np.asarray(rows).tolist())) == 10 and bool(rollout.all()) and int(discarded) == 30
-    rows, rollout, discarded = Diverse(4).select(pool, rep, jnp.ones(40, bool), jnp.bool_(True), params, 10)
-    np.testing.assert_array_equal(rows, np.arange(10))
-    assert int(discarded) == 0
 
 
 def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qualities():
@@ -332,13 +329,13 @@ def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qual
     rep = repertoire_of([[0.0, 0.0], [1.0, 0.0]], [0.2, 0.6])
     rep = rep.replace(qualities=rep.qualities.at[5].set(5.0))
     pool = judged([[0.0, 0.0], [0.0, 0.001], [0.0, 1.0]], [0.25, 0.5, 0.0], rep)
-    params, wanted, warm = Config().params().replace(t_dist=jnp.float32(0.05)), jnp.ones(3, bool), jnp.bool_(False)
+    params, wanted, key = Config().params().replace(t_dist=jnp.float32(0.05)), jnp.ones(3, bool), jax.random.PRNGKey(0)
     # One quality step of one: both beat the skill by more than 0.5 x 0.2 = 0.1? Only 1 (by 0.3); it goes first.
-    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=0.5).select(pool, rep, wanted, warm, params, 3)
+    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=0.5).select(key, (), pool, rep, wanted, params, 3)
     np.testing.assert_array_equal(rows, [1, 2, 0])
     # A margin of 2 x 0.2 = 0.4 leaves no improver preferred: the opener first, as without quality steps.
-    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=2.0).select(pool, rep, wanted, warm, params, 3)
-    np.testing.assert_array_equal(rows, Diverse(1, 0.0).select(pool, rep, wanted, warm, params, 3)[0])
+    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=2.0).select(key, (), pool, rep, wanted, params, 3)
+    np.testing.assert_array_equal(rows, Diverse(1, 0.0).select(key, (), pool, rep, wanted, params, 3)[0])
     assert int(rows[0]) == 2
 
 
@@ -412,16 +409,16 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
                steering_share=0.3)
     assert cfg.emitter == ModelEmitter(
         IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1),
-        Surrogate(hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, anchoring="auto", anchor="parent",
-                  features=True, gate=Gate()),
-        k=cfg.k, warmup_samples=48, fallback=Fallback(), steering=Steering(share=0.3))
+        Surrogate(hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, features=True, gate=Gate()),
+        k=cfg.k, warmup_samples=48, fallback=Fallback(), steering=Steering(share=0.3), anchoring="auto",
+        anchor="parent")
 
     def changed(**options):
         return dataclasses.replace(cfg, algorithm_options={**cfg.options, **options}).emitter
 
     assert changed(wide_scale=1.0).inner == IsoLine()  # version 0.8's
     assert changed(wide_scale=3.0).inner == IsoLine(scales=(1.0, 3.0))
-    assert changed(anchor="nearest").surrogate.anchor == "nearest"  # version 0.5's
+    assert changed(anchor="nearest").anchor == "nearest"  # version 0.5's
     assert changed(steering_share=0.0).steering is None  # version 0.4's "mqd"
     assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
     assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
@@ -442,7 +439,7 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
 
 def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_only_them(linear_task):
     emitter = ModelEmitter(IsoLine(), Diverse(2), Surrogate(num_batches=3, training_data="rollouts", rollout_buffer=8))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     rep = Repertoire.empty(16, 3, 2, 4)
     params = Params(jnp.float32(0.02), emitter.default_params())
     for step in range(2):  # two generations of 6 candidates, the last of each unusable

@@ -31,7 +31,7 @@ def linear_state(linear_cfg, linear_task):
     trained, _ = model.train(state.emitter.surrogate.model, jax.random.PRNGKey(2), rep, linear_task, jnp.float32(1e-2),
                              linear_cfg.emitter.surrogate.batch_size, linear_cfg.emitter.surrogate.num_batches)
     return state.replace(repertoire=rep, emitter=state.emitter.replace(
-        surrogate=state.emitter.surrogate.replace(model=trained)))
+        surrogate=state.emitter.surrogate.replace(model=trained), evaluations=jnp.int32(n)))
 
 
 def goals_near(state, num=32):
@@ -143,8 +143,7 @@ def test_bad_calls_are_refused_before_tracing(obstacle_run):
         adapt(qd_state, jnp.zeros((3, 2)), key, qd_cfg, "model")
     with pytest.raises(ValueError, match=r"does not belong to this config.*another structure"):
         adapt(qd_state, jnp.zeros((3, 2)), key, cfg, "linear")  # a QD state with an M-QD config
-    model = state.emitter.surrogate.model
-    surrogate = state.emitter.surrogate.replace(model=model.replace(steps=jnp.zeros_like(model.steps)))
-    untrained = state.replace(emitter=state.emitter.replace(surrogate=surrogate))
+    # A state whose run has not finished warm-up: its model never trained.
+    untrained = state.replace(emitter=state.emitter.replace(evaluations=jnp.int32(cfg.options["warmup_samples"] - 1)))
     with pytest.raises(ValueError, match="needs a trained model"):
         adapt(untrained, jnp.zeros((3, 2)), key, cfg, "model")

@@ -50,7 +50,7 @@ def test_invalid_values_name_the_field(field, value):
     ("mqd", "hidden_size", True, "hidden_size=True is invalid: expected an int"),
     ("qd", "iso_sigma", -0.1, "IsoLine.iso_sigma=-0.1"), ("qd", "line_sigma", float("inf"), "IsoLine.line_sigma=inf"),
     ("mqd", "pool_factor", 0, "Diverse.pool_factor=0"), ("mqd", "steering_share", 1.0, "Steering.share=1.0"),
-    ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "Surrogate.anchor='first'"),
+    ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "ModelEmitter.anchor='first'"),
     ("mqd", "parent_weight", -1.0, "Diverse.parent_weight=-1.0"), ("mqd", "parent_weight", float("nan"),
                                                                    "Diverse.parent_weight=nan"),
     ("mqd", "quality_share", 1.5, "Diverse.quality_share=1.5"), ("mqd", "wide_scale", 0.0, "IsoLine.scales="),

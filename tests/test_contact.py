@@ -156,7 +156,7 @@ def test_the_model_takes_the_features_as_inputs_after_the_actions():
     x = np.asarray(model.inputs(a, task, True))
     np.testing.assert_array_equal(x[:, :task.action_dim], np.asarray(model.normalize_actions(a, task)))
     np.testing.assert_array_equal(x[:, task.action_dim:], np.asarray(task.features(a)))
-    state = Surrogate(hidden_size=4, features=True).init(jax.random.PRNGKey(0), task)
+    state = Surrogate(hidden_size=4, features=True).init(jax.random.PRNGKey(0), task, 64)
     assert state.model.params["params"]["Dense_0"]["kernel"].shape == (1, task.action_dim + 6, 4)
 
 

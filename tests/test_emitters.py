@@ -82,14 +82,13 @@ def test_acquisition_rules_respect_the_inner_emitters_rollout_mask_by_hand():
     params = Params(jnp.float32(0.02), Threshold(t_nov=0.1, t_qua=0.1).default_params())
     judged = Judged(jnp.zeros((6, 2)), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), novelty, improvement)
     rep = Repertoire.empty(4, 1, 2, 4)
-    rows, rollout, discarded = Threshold().select(judged, rep, wanted, jnp.bool_(False), params, 6)
+    key = jax.random.PRNGKey(0)
+    rows, rollout, discarded = Threshold().select(key, (), judged, rep, wanted, params, 6)
     # Passing: 0 and 4 by novelty, 1 and 5 by improvement; 2 passes too but the inner emitter did not want it.
     np.testing.assert_array_equal(rows, np.arange(6))
     np.testing.assert_array_equal(rollout, [True, True, False, False, True, True])
     assert int(discarded) == 1  # 3: wanted, turned down
-    rows, rollout, _ = Threshold().select(judged, rep, wanted, jnp.bool_(True), params, 6)
-    np.testing.assert_array_equal(rollout, wanted)  # warm-up: the inner emitter's choice
-    rows, rollout, discarded = Budgeted(2).select(judged, rep, wanted, jnp.bool_(False), params, 3)
+    rows, rollout, discarded = Budgeted(2).select(key, (), judged, rep, wanted, params, 3)
     # Wanted first; of those, novel (> 0.1) by novelty: 0 (0.5), 4 (0.3); then by improvement: 1 (0.5).
     np.testing.assert_array_equal(rows, [0, 4, 1])
     assert bool(rollout.all()) and int(discarded) == 3
@@ -124,7 +123,7 @@ def test_bad_compositions_are_refused_at_construction():
         ModelEmitter("qd")
     with pytest.raises(ValueError, match=r"Surrogate\.hidden_size=0"):
         Surrogate(hidden_size=0)
-    with pytest.raises(ValueError, match=r"ModelEmitter\.surrogate=.* expected a Surrogate"):
+    with pytest.raises(ValueError, match=r"ModelEmitter\.surrogate=.* expected a surrogate"):
         ModelEmitter(IsoLine(), surrogate=Validity())
     clash = r"metrics \['discarded', 'model_loss', 'opener_auc', 'prediction_error'\] clash"
     with pytest.raises(ValueError, match=clash):

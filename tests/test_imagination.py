@@ -44,7 +44,7 @@ def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), start, linear_task, jnp.ones(12, bool))
     emitter = Imagination(IsoLine(), surrogate=_Perfect(), k=K, generations=2)
     params = Params(jnp.float32(T_DIST), emitter.default_params())
-    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     key, num = jax.random.PRNGKey(7), 10
     proposal = emitter.propose(key, state, rep, linear_task, params, num)
     params = params.part(params.emitter.inner)  # IsoLine's, as the emitter hands them to it
@@ -73,7 +73,7 @@ def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_
     emitter = Imagination(IsoLine(), surrogate=_Perfect(), k=K, generations=3, warmup_samples=100)
     params = Params(jnp.float32(0.02), emitter.default_params())
     key = jax.random.PRNGKey(5)
-    proposal = emitter.propose(key, emitter.init(key, linear_task), rep, linear_task, params, 6)
+    proposal = emitter.propose(key, emitter.init(key, linear_task, 64), rep, linear_task, params, 6)
     first = IsoLine().propose(jax.random.split(key, 3)[0], (), rep, linear_task, params.part(params.emitter.inner), 6)
     np.testing.assert_allclose(proposal.actions, first.actions, rtol=1e-5, atol=1e-6)
     assert bool(proposal.rollout.all())
@@ -90,8 +90,8 @@ def test_imagination_is_validated(kw, field):
 
 
 def test_a_run_rolls_out_at_most_the_population_and_counts_the_rest_as_discarded(tiny):
-    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), surrogate=Surrogate(anchoring="auto", num_batches=2),
-                                                        warmup_samples=16))
+    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), surrogate=Surrogate(num_batches=2),
+                                                        warmup_samples=16, anchoring="auto"))
     _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     assert np.all(metrics["evaluations"] + metrics["discarded"] == cfg.population_size)
     assert metrics["evaluations"][0] == cfg.population_size  # warm-up: the first 16 rollouts

@@ -173,7 +173,7 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     emitter's; during warm-up the pool is the inner emitter's."""
     emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8), warmup_samples=10,
                            steering=Steering(share=0.5, step_low=0.05, step_high=0.05))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     state = state.replace(surrogate=state.surrogate.replace(model=model.init(jax.random.PRNGKey(3), 8, linear_task)))
     predict = lambda actions: emitter.surrogate.predict(state.surrogate, actions, linear_task)  # noqa: E731
     rep = skills_at(linear_task, [[0.1, -0.2, 0.3]])
@@ -214,7 +214,7 @@ def test_a_child_whose_jacobian_is_not_finite_keeps_the_inner_candidate(linear_t
                   linear_task.behavior_high)
     emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8, features=True),
                            steering=Steering(share=0.5))
-    state = emitter.init(jax.random.PRNGKey(0), task)
+    state = emitter.init(jax.random.PRNGKey(0), task, 64)
     rep = skills_at(task, [[-0.5, 0.0, 0.0], [0.5, 0.3, 0.1]])  # the first: a masked norm at 0
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
     pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, task, params.part(params.emitter.inner),
@@ -235,9 +235,9 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     the parents a ModelEmitter's proposal names (IsoLine's first parents, the steered rows' steering parents,
     kept with the rows the rule chose) hold exactly the proposed actions."""
     emitter = ModelEmitter(IsoLine(iso_sigma=0.0, line_sigma=0.0), Diverse(pool_factor=4),
-                           Surrogate(hidden_size=8, anchoring="always"),
-                           steering=Steering(share=0.5, step="mutation", iso_sigma=0.0))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task)
+                           Surrogate(hidden_size=8), steering=Steering(share=0.5, step="mutation", iso_sigma=0.0),
+                           anchoring="always")
+    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     rep = skills_at(linear_task, [[0.1 * i, -0.05 * i, 0.02 * i * i] for i in range(8)])
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
     inner = params.part(params.emitter.inner)

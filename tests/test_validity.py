@@ -81,19 +81,17 @@ def test_the_rules_put_likely_unusable_candidates_after_the_others_by_hand():
     pool = Judged(jnp.zeros((4, 2)), jnp.zeros(4), jnp.zeros(4), novelty, jnp.zeros(4), novelty, improvement,
                   novelty[:, None], validity)
     budgeted, threshold = Budgeted(1, t_nov=0.04), Threshold(t_nov=0.04, t_qua=0.15)
-    rows, _, _ = budgeted.select(pool, None, wanted, jnp.bool_(False), Params(0.02, budgeted.default_params()), 4)
+    key = jax.random.PRNGKey(0)
+    rows, _, _ = budgeted.select(key, (), pool, None, wanted, Params(0.02, budgeted.default_params()), 4)
     np.testing.assert_array_equal(rows, [1, 0, 2, 3])
-    _, rollout, discarded = threshold.select(pool, None, wanted, jnp.bool_(False),
-                                             Params(0.02, threshold.default_params()), 4)
+    _, rollout, discarded = threshold.select(key, (), pool, None, wanted, Params(0.02, threshold.default_params()), 4)
     np.testing.assert_array_equal(rollout, [False, True, False, False])  # 3 passes t_qua but is judged unusable
     assert int(discarded) == 3
-    _, rollout, _ = threshold.select(pool, None, wanted, jnp.bool_(True), Params(0.02, threshold.default_params()), 4)
-    np.testing.assert_array_equal(rollout, True)  # warm-up: everything
 
 
 def composed(validity):
-    return ModelEmitter(IsoLine(), Diverse(3), Surrogate(num_batches=5, anchoring="auto", validity=validity),
-                        warmup_samples=32, fallback=Fallback(), steering=Steering(share=0.3))
+    return ModelEmitter(IsoLine(), Diverse(3), Surrogate(num_batches=5, validity=validity), warmup_samples=32,
+                        fallback=Fallback(), steering=Steering(share=0.3), anchoring="auto")
 
 
 @pytest.mark.fusion_emitters  # two programs (with and without the classifier) agree bit for bit

@@ -4,7 +4,7 @@ An emitter (like optax's `GradientTransformation` or QDax's `Emitter`) is a
 frozen dataclass of static settings with three pure functions over a state of
 its own (any pytree, e.g. a `flax.struct` dataclass):
 
-    state = emitter.init(key, task)
+    state = emitter.init(key, task)            # a `sized` one: init(key, task, capacity)
     proposal = emitter.propose(key, state, repertoire, task, params, num)
     state, metrics = emitter.update(key, state, proposal, evaluated, repertoire, task, params)
 
@@ -98,8 +98,12 @@ def action_bounds(task: Task) -> tuple[jax.Array, jax.Array]:
 class Emitter:
     """Base class of emitters: subclass it as a frozen dataclass and implement `propose`.
 
-    The defaults: no state, an `update` that changes nothing and no metrics.
+    The defaults: no state, an `update` that changes nothing and no metrics. An emitter whose state depends on
+    the repertoire's size sets the class attribute `sized = True` and takes `init(key, task, capacity)` (the
+    run passes `Config.capacity`; `init_emitter` calls either kind).
     """
+
+    sized = False
 
     def init(self, key: jax.Array, task: Task) -> Any:
         """The emitter's state before the first generation (a pytree; default: none)."""
@@ -147,3 +151,8 @@ class Emitter:
     def metrics(self) -> dict[str, Any]:
         """{name: dtype} of the scalars `update` returns (default: none)."""
         return {}
+
+
+def init_emitter(emitter: Emitter, key: jax.Array, task: Task, capacity: int) -> Any:
+    """`emitter`'s initial state: `init(key, task, capacity)` for a `sized` emitter, else `init(key, task)`."""
+    return emitter.init(key, task, capacity) if emitter.sized else emitter.init(key, task)

@@ -22,7 +22,7 @@ import numpy as np
 from mqd_jax.core import archive as archive_lib
 from mqd_jax.core import coverage, diagnostics, pytree, registry, repertoire, sizes
 from mqd_jax.core.config import Config, check_params
-from mqd_jax.core.emitter import Evaluated, Proposal
+from mqd_jax.core.emitter import Evaluated, Proposal, init_emitter
 from mqd_jax.core.params import Params
 from mqd_jax.core.repertoire import AddStatus
 from mqd_jax.core.task import Task, check_outputs, feature_dim
@@ -142,7 +142,7 @@ def _init(key: jax.Array, cfg: Config) -> State:
         repertoire=repertoire.Repertoire.empty(cfg.capacity, n, d, cfg.neighbours, kept_features(cfg)),
         archive=archive_lib.Archive.empty(cfg.archive_capacity, n, d),
         coverage=_empty_coverage(cfg),
-        emitter=cfg.emitter.init(k_emitter, task),
+        emitter=init_emitter(cfg.emitter, k_emitter, task, cfg.capacity),
         key=key,
         generation=jnp.int32(0),
         num_evaluations=jnp.int32(0),

@@ -31,7 +31,7 @@ cannot).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -143,9 +143,10 @@ class ThresholdParams:
 class Threshold:
     """The paper's filter (Algorithm 1): of `num` candidates, roll out those whose predicted novelty exceeds
     `t_nov` or whose predicted improvement exceeds `t_qua` (and are judged likely usable, with a validity
-    classifier); all of them during warm-up. `t_nov` (>= 0) and `t_qua` (any finite) are the defaults of its
-    traced parameters (`ThresholdParams`; Table II: 0.04 and 0)."""
+    classifier). `t_nov` (>= 0) and `t_qua` (any finite) are the defaults of its traced parameters
+    (`ThresholdParams`; Table II: 0.04 and 0). Its rows are the pool's own, unranked (`ranked` False)."""
 
+    ranked: ClassVar[bool] = False
     t_nov: float = 0.04
     t_qua: float = 0.0
 
@@ -162,12 +163,11 @@ class Threshold:
     def pool_size(self, num: int) -> int:
         return num
 
-    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
-               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def select(self, key: jax.Array, state: Any, judged: Judged, repertoire: Repertoire, wanted: jax.Array,
+               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept, their rollout mask [num] and how many wanted candidates were turned down."""
         own = params.emitter
-        rollout = wanted & (warm_up | (passes(judged.novelty, judged.improvement, own.t_nov, own.t_qua)
-                                       & judged.plausible))
+        rollout = wanted & passes(judged.novelty, judged.improvement, own.t_nov, own.t_qua) & judged.plausible
         return jnp.arange(num), rollout, (wanted & ~rollout).sum(dtype=jnp.int32)
 
 
@@ -190,7 +190,7 @@ class BudgetedParams:
 @dataclasses.dataclass(frozen=True)
 class Budgeted:
     """Budgeted ranking: rank `pool_factor` x num candidates (`ranking`, novel above the traced `t_nov`, its
-    default the field `t_nov`) and roll out the top num; during warm-up the pool's first num candidates."""
+    default the field `t_nov`) and roll out the top num."""
 
     pool_factor: int = 4
     t_nov: float = 0.04
@@ -208,20 +208,18 @@ class Budgeted:
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
 
-    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
-               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def select(self, key: jax.Array, state: Any, judged: Judged, repertoire: Repertoire, wanted: jax.Array,
+               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (best first), their rollout mask [num] and how many candidates were turned
         down."""
         top = ranking(judged.novelty, judged.improvement, params.emitter.t_nov, wanted, judged.plausible)[:num]
-        return _after_warm_up(top, wanted, warm_up, num)
+        return ranked_result(top, wanted)
 
 
-def _after_warm_up(top: jax.Array, wanted: jax.Array, warm_up: jax.Array,
-                   num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """A ranking rule's result: its rows `top` [num], or during warm-up the pool's first num rows."""
-    rows = jnp.where(warm_up, jnp.arange(num), top)
-    discarded = jnp.where(warm_up, 0, wanted.shape[0] - num).astype(jnp.int32)
-    return rows, wanted[rows], discarded
+def ranked_result(top: jax.Array, wanted: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """A ranking rule's result from its rows `top` [num] of a pool whose rollout mask is `wanted` [N]: the rows,
+    their rollout mask and the count of the pool's other rows (turned down)."""
+    return top, wanted[top], jnp.int32(wanted.shape[0] - top.shape[0])
 
 
 def _check_pool_factor(rule: object) -> None:
@@ -318,7 +316,7 @@ class Diverse:
     nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`; times the parent's relative
     novelty to the power `parent_weight`: 0, not read; a `quality_share` of the steps prefer predicted quality
     improvements of held niches larger than `quality_margin` x the standard deviation of the repertoire's
-    qualities); during warm-up the pool's first num."""
+    qualities)."""
 
     pool_factor: int = 8
     beta: float = 1.0
@@ -341,8 +339,8 @@ class Diverse:
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
 
-    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
-               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def select(self, key: jax.Array, state: Any, judged: Judged, repertoire: Repertoire, wanted: jax.Array,
+               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Rows [num] of the pool kept (first chosen first), their rollout mask [num] and how many candidates were
         turned down."""
         margin = 0.0
@@ -350,24 +348,56 @@ class Diverse:
             margin = self.quality_margin * jnp.std(repertoire.qualities, where=repertoire.valid)
         top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
                              self.quality_share, jnp.nan_to_num(margin))
-        return _after_warm_up(top, wanted, warm_up, num)
+        return ranked_result(top, wanted)
 
 
 class Acquisition(Protocol):
     """What `ModelEmitter` needs of a rule (`Threshold`, `Budgeted` and `Diverse`; a user's own is another).
 
-    A rule with traced parameters also has `default_params()` and `check_params(params)` (as an `Emitter`
-    has) and reads them as `params.emitter` in `select`; one without needs neither (`params_of`).
+    The contract of `select(key, state, judged, repertoire, wanted, params, num)`:
+
+    * it gets a key of its own (a stochastic rule draws from it), its state (`init`'s, else ()), the model's
+      view of a pool of N = `pool_size(num)` candidates (`Judged`), the repertoire and the inner emitter's
+      rollout mask `wanted` [N];
+    * it returns the rows [num] of the pool it keeps, *distinct*, their rollout mask [num] (normally
+      `wanted[rows]`: a row the inner emitter did not want must not be rolled out) and the int32 count of
+      candidates the model turned down (a metric, `discarded`);
+    * a ranking rule returns its rows best first: a `Fallback` keeps only the first round(share x num) of them
+      and fills the rest with the inner emitter's own first candidates. A rule whose rows are not a ranking
+      sets the class attribute `ranked = False` (as `Threshold`), and a fallback or steering is refused with it;
+    * it need not handle warm-up: until `ModelEmitter.warmup_samples` rollouts, the emitter rolls out the
+      pool's first num rows as the inner emitter proposed them and does not use the rule's choice.
+
+    Optionally, as an `Emitter` has: `default_params()` and `check_params(params)` (traced parameters, read as
+    `params.emitter` in `select`); `init(key, task)` (a state, else ()) and `update(key, state, proposal,
+    evaluated)` (the state after the generation's rollouts: `proposal` is the emitter's, its `info` holding
+    the kept rows' `predicted_behaviors`).
     """
 
     def pool_size(self, num: int) -> int:
         """How many candidates the rule chooses `num` from."""
 
-    def select(self, judged: Judged, repertoire: Repertoire, wanted: jax.Array, warm_up: jax.Array, params: Params,
-               num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """From the model's view of the pool (N candidates), the repertoire and the inner emitter's rollout mask
-        `wanted` [N]: the rows [num] kept (a ranking rule: best first), their rollout mask [num] and the int32
+    def select(self, key: jax.Array, state: Any, judged: Judged, repertoire: Repertoire, wanted: jax.Array,
+               params: Params, num: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """The rows [num] kept (distinct; a ranking rule: best first), their rollout mask [num] and the int32
         count of candidates the model turned down."""
+
+
+def is_ranked(rule: Any) -> bool:
+    """Whether a rule's rows are a ranking, best first (its class attribute `ranked`, True where it has none)."""
+    return getattr(rule, "ranked", True)
+
+
+def state_of(rule: Any, key: jax.Array, task: Any) -> Any:
+    """A rule's state: its `init(key, task)`, or () for a rule without."""
+    init = getattr(rule, "init", None)
+    return () if init is None else init(key, task)
+
+
+def updated_state(rule: Any, key: jax.Array, state: Any, proposal: Any, evaluated: Any) -> Any:
+    """A rule's state after a generation: its `update(key, state, proposal, evaluated)`, or `state` without."""
+    update = getattr(rule, "update", None)
+    return state if update is None else update(key, state, proposal, evaluated)
 
 
 def params_of(rule: Any) -> Any:

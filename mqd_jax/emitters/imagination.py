@@ -62,23 +62,23 @@ class Imagination(ModelEmitter):
         if self.steering is not None:
             raise ValueError(f"Imagination.steering={self.steering!r} is invalid: expected None (imagined "
                              "generations draw their own pools)")
-        if self.surrogate.validity is not None:
-            raise ValueError(f"Imagination.surrogate.validity={self.surrogate.validity!r} is invalid: expected None "
+        if self.model.validity is not None:
+            raise ValueError(f"Imagination.surrogate.validity={self.model.validity!r} is invalid: expected None "
                              "(no acquisition rule reads it: what the imagined generations add is rolled out)")
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
         def imagine(rep: Repertoire, key: jax.Array) -> tuple[Repertoire, tuple[Any, ...]]:
             pool = self.inner.propose(key, state.inner, rep, task, params.part(params.emitter.inner), num)
-            x = self.surrogate.inputs(pool.actions, task)
-            features = x[:, task.action_dim:]  # [num, 0] where the model takes no features
-            plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, rep, task, pool.parents, x)
-            predicted = self.surrogate.chosen(state.surrogate, plain, anchored).mean(axis=0)
+            x = self.model.inputs(pool.actions, task)
+            features = x[:, task.action_dim:] if self.keeps_features(task) else x[:, :0]  # [num, 0]: none kept
+            plain, anchored = self.predictions(state, pool.actions, rep, task, pool.parents, x)
+            predicted = self.chosen(state, plain, anchored).mean(axis=0)
             rep, ins = repertoire_lib.insert(rep, pool.actions, predicted[:, :-1], predicted[:, -1], pool.rollout,
                                              params.t_dist, self.k, repertoire_lib.NUM_NEAR, chunk=32,
                                              features=features)
             # anchoring "auto" compares both predictions on the rollouts (ModelEmitter.update).
-            both = (plain.mean(axis=0), anchored.mean(axis=0)) if self.surrogate.anchoring == "auto" else ()
+            both = (plain.mean(axis=0), anchored.mean(axis=0)) if self.anchoring == "auto" else ()
             return rep, (pool, predicted, both, repertoire_lib.written_slots(ins, rep.capacity), features)
 
         _, (pools, predicted, both, written, features) = jax.lax.scan(
@@ -95,7 +95,7 @@ class Imagination(ModelEmitter):
         info = {"inner": jax.tree.map(flat, pools.info), "predicted_behaviors": behaviors,
                 "predicted_distance": jnp.sqrt(sq), "from_model": jnp.ones(num, bool),
                 "discarded": (wanted & ~rollout).sum(dtype=jnp.int32)}
-        if self.surrogate.anchoring == "auto":
+        if self.anchoring == "auto":
             info["both_behaviors"] = jnp.stack([flat(y)[:, :-1] for y in both])
         # No parents: an imagined candidate's parent may be an imagined skill, not one of `repertoire`'s.
         return Proposal(flat(pools.actions), rollout, info,

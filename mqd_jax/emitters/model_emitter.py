@@ -2,17 +2,19 @@
 are worth a rollout (paper, "Model-Based Quality-Diversity Search", Algorithm 1).
 
 `ModelEmitter(inner, acquisition, surrogate)` asks `inner` for a pool of candidates,
-predicts their behaviors and qualities with its surrogate (`mqd_jax.surrogate.surrogate`: the
-model, one network or a vmapped ensemble, its training data, anchoring and validity classifier),
-scores them against the repertoire and lets
+predicts their behaviors and qualities with its surrogate (any part that keeps the protocol of
+`mqd_jax.surrogate.protocol`; the built-in `mqd_jax.surrogate.surrogate.Surrogate`: one network or a
+vmapped ensemble, its training data, features, gate and validity classifier), anchors the predictions
+where `anchoring` says (`mqd_jax.emitters.anchoring`), scores them against the repertoire and lets
 the acquisition rule choose (`mqd_jax.emitters.acquisition`: the paper's `Threshold`
 filter, `Budgeted` ranking or `Diverse` batch selection). Until
-`warmup_samples` of its candidates were rolled out the rule passes the inner
-emitter's proposal through. After every generation past warm-up it trains the
-model on the repertoire, or on a buffer of its latest rollouts. It owns the
-model's state and reports the model's metrics; any emitter can be the inner one.
+`warmup_samples` of its candidates were rolled out it rolls out the inner
+emitter's proposal as it came (the rule's choice is not used). After every generation past warm-up it fits
+the surrogate (`fit`); the built-in one also `observe`s every generation's rollouts. It owns the
+surrogate's state, measures its held-out error and reports the model's metrics; any emitter can be the inner
+one.
 
-Two options change what the model's choice is worth (the surrogate's `anchoring` changes what it says):
+Two options change what the model's choice is worth (`anchoring` changes what it says):
 
 * `fallback` (`Fallback`): a share of each generation's rollouts goes to the
   model's choice and the rest to the inner emitter's own first candidates; the
@@ -42,14 +44,16 @@ import jax.numpy as jnp
 from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.checks import is_int
-from mqd_jax.core.emitter import Emitter, Evaluated, Proposal
+from mqd_jax.core.emitter import Emitter, Evaluated, Proposal, init_emitter
 from mqd_jax.core.params import Params
 from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.core.task import Task
-from mqd_jax.emitters import acquisition
+from mqd_jax.emitters import acquisition, anchoring
 from mqd_jax.emitters import steering as steering_lib
+from mqd_jax.emitters.anchoring import prediction_error
 from mqd_jax.emitters.pursuit import Fallback
-from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState, prediction_error
+from mqd_jax.surrogate import protocol
+from mqd_jax.surrogate.surrogate import Surrogate
 
 _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error": jnp.float32,
             "opener_auc": jnp.float32}
@@ -57,8 +61,8 @@ _METRICS = {"discarded": jnp.int32, "model_loss": jnp.float32, "prediction_error
 
 @pytree.dataclass
 class ModelEmitterParams:
-    """A `ModelEmitter`'s traced parameters: its parts' own (the surrogate's learning rate, the inner emitter's
-    and the acquisition rule's)."""
+    """A `ModelEmitter`'s traced parameters: its parts' own (the surrogate's (the built-in's learning rate), the
+    inner emitter's and the acquisition rule's)."""
 
     surrogate: Any
     inner: Any = ()
@@ -70,18 +74,24 @@ class ModelEmitterState:
     """The wrapper's state.
 
     Attributes:
-      surrogate: the surrogate's state (`SurrogateState`: the model, its training data, anchoring, validity).
+      surrogate: the surrogate's state (the built-in's `SurrogateState`: the model, its training data, gate,
+        validity).
       inner: the inner emitter's state.
       evaluations: int32, this emitter's candidates rolled out so far (warm-up counts them).
       fallback: `FallbackState`, or () without a fallback.
       steering: `pursuit.FallbackState` of a steering pursuit, or ().
+      anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the plain and the anchored
+        predictions (NaN before the first); else ().
+      acquisition: the rule's state (its `init`), or ().
     """
 
-    surrogate: SurrogateState
+    surrogate: Any
     inner: Any
     evaluations: jax.Array
     fallback: Any = ()
     steering: Any = ()
+    anchor_errors: Any = ()
+    acquisition: Any = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,7 +101,8 @@ class ModelEmitter(Emitter):
     Attributes:
       inner: the emitter whose candidates the model judges.
       acquisition: the rule that picks the candidates to roll out.
-      surrogate: the model, its training, anchoring and validity classifier (`Surrogate`).
+      surrogate: the model (`mqd_jax.surrogate.protocol`: any object with `init`, `fit` and `predict`; the
+        built-in `Surrogate` with its training, features, gate and validity classifier).
       k: the repertoire neighbours the predicted novelty and improvement average over.
       warmup_samples: rollouts before the model is trained and used.
       fallback: a `Fallback`, or None to always follow the acquisition rule.
@@ -99,6 +110,7 @@ class ModelEmitter(Emitter):
       steering: a `steering.Steering`, or None for the inner emitter's pool alone. Only with a ranking rule
         whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up. A
         child whose Jacobian is not finite (see `_steered`) is not steered: its row keeps the inner candidate.
+      anchoring: "none", "always" or "auto"; anchor: "parent" or "nearest" (`mqd_jax.emitters.anchoring`).
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -117,39 +129,56 @@ class ModelEmitter(Emitter):
 
     inner: Emitter
     acquisition: acquisition.Acquisition = dataclasses.field(default_factory=acquisition.Threshold)
-    surrogate: Surrogate = dataclasses.field(default_factory=Surrogate)
+    surrogate: Any = dataclasses.field(default_factory=Surrogate)
     k: int = 5
     warmup_samples: int = 0
     fallback: Fallback | None = None
     steering: steering_lib.Steering | None = None
+    anchoring: str = "none"
+    anchor: str = "parent"
+
+    # Its surrogate may keep data sized by the repertoire (`init(key, task, capacity)`).
+    sized = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.inner, Emitter):
             raise ValueError(f"ModelEmitter.inner={self.inner!r} is invalid: expected an Emitter")
-        if not isinstance(self.surrogate, Surrogate):
-            raise ValueError(f"ModelEmitter.surrogate={self.surrogate!r} is invalid: expected a Surrogate")
+        if not protocol.is_surrogate(self.surrogate):
+            raise ValueError(f"ModelEmitter.surrogate={self.surrogate!r} is invalid: expected a surrogate, an object "
+                             "with init(key, task, capacity), fit(key, state, repertoire, task, params) and "
+                             "predict(state, actions, task) (mqd_jax.surrogate.protocol), such as Surrogate()")
+        if self.anchoring not in anchoring.ANCHORING:
+            raise ValueError(f"ModelEmitter.anchoring={self.anchoring!r} is invalid: expected one of "
+                             f"{anchoring.ANCHORING}")
+        if self.anchor not in anchoring.ANCHORS:
+            raise ValueError(f"ModelEmitter.anchor={self.anchor!r} is invalid: expected one of {anchoring.ANCHORS}")
         for name, lowest in (("k", 1), ("warmup_samples", 0)):
             value = getattr(self, name)
             if not (is_int(value) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
-        if self.fallback is not None and not (isinstance(self.fallback, Fallback)
-                                              and not isinstance(self.acquisition, acquisition.Threshold)):
+        ranked = acquisition.is_ranked(self.acquisition)
+        if self.fallback is not None and not (isinstance(self.fallback, Fallback) and ranked):
             raise ValueError(f"ModelEmitter.fallback={self.fallback!r} is invalid: expected None, or a Fallback "
-                             "with a ranking acquisition rule (not Threshold, whose rows are not ranked)")
-        if self.steering is not None and not (isinstance(self.steering, steering_lib.Steering)
-                                              and not isinstance(self.acquisition, acquisition.Threshold)):
+                             "with a ranking acquisition rule (not one whose rows are not ranked, as Threshold's)")
+        if self.steering is not None and not (isinstance(self.steering, steering_lib.Steering) and ranked):
             raise ValueError(f"ModelEmitter.steering={self.steering!r} is invalid: expected None, or a Steering "
                              "with a ranking acquisition rule (Threshold would roll out every steered child)")
         clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
 
+    @property
+    def model(self) -> Any:
+        """The surrogate as this emitter reads it: the built-in `Surrogate` itself, any other with the neutral
+        hooks of `protocol.Hooks`."""
+        return protocol.hooks(self.surrogate)
+
     def default_params(self) -> ModelEmitterParams:
-        return ModelEmitterParams(self.surrogate.default_params(), self.inner.default_params(),
+        return ModelEmitterParams(self.model.default_params(), self.inner.default_params(),
                                   acquisition.params_of(self.acquisition))
 
     def check_params(self, params: ModelEmitterParams) -> None:
-        self.surrogate.check_params(params.surrogate)
+        self.model.check_params(params.surrogate)
         self.inner.check_params(params.inner)
         acquisition.check_params_of(self.acquisition, params.acquisition)
 
@@ -169,11 +198,11 @@ class ModelEmitter(Emitter):
     def keeps_features(self, task: Task) -> bool:
         """The model takes the task's features (`Surrogate(features=True)` and the task has some): the repertoire
         keeps each skill's, so that anchors and training rows read them rather than compute them again."""
-        return self.surrogate.featured(task)
+        return self.model.featured(task)
 
     def check_task(self, task: Task) -> None:
         self.inner.check_task(task)
-        self.surrogate.check_task(task)
+        self.model.check_task(task)
 
     def _steered_count(self, pool_size: int, num: int) -> int:
         """The rows steering replaces in a pool of `pool_size` for `num` rollouts; ValueError unless at least 1,
@@ -185,25 +214,41 @@ class ModelEmitter(Emitter):
                              "generation (a smaller share, or a larger pool)")
         return count
 
-    def init(self, key: jax.Array, task: Task) -> ModelEmitterState:
-        return ModelEmitterState(surrogate=self.surrogate.init(key, task),
-                                 inner=self.inner.init(jax.random.fold_in(key, 1), task), evaluations=jnp.int32(0),
+    def init(self, key: jax.Array, task: Task, capacity: int) -> ModelEmitterState:
+        """The state before any rollout; `capacity`: the repertoire's (the run passes its `Config.capacity`)."""
+        return ModelEmitterState(surrogate=self.model.init(key, task, capacity),
+                                 inner=init_emitter(self.inner, jax.random.fold_in(key, 1), task, capacity),
+                                 evaluations=jnp.int32(0),
                                  fallback=() if self.fallback is None else self.fallback.init(),
-                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init())
+                                 steering=() if self._steering_pursuit is None else self._steering_pursuit.init(),
+                                 anchor_errors=anchoring.init(self.anchoring),
+                                 acquisition=acquisition.state_of(self.acquisition, jax.random.fold_in(key, 5), task))
 
     def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
               parents: jax.Array | None = None) -> acquisition.Judged:
         """The model's view of actions [N, n] (with their parents' slots [N], or None) against the repertoire
         (anchored as `anchoring` and `anchor` say)."""
-        plain, anchored = self.surrogate.predictions(state.surrogate, actions, repertoire, task, parents)
+        plain, anchored = self.predictions(state, actions, repertoire, task, parents)
         return self._judged(state, plain, anchored, repertoire, actions, task, parents)
+
+    def predictions(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
+                    parents: jax.Array | None = None,
+                    x: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
+        """The surrogate's plain and anchored predictions [E, N, d + 1] of actions [N, n] (`anchoring.predictions`;
+        x: their inputs where computed)."""
+        return anchoring.predictions(self.model, state.surrogate, actions, repertoire, task, self.anchoring,
+                                     self.anchor, parents, x)
+
+    def chosen(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
+        """The predictions [E, N, d + 1] `anchoring` trusts now (`anchoring.chosen`)."""
+        return anchoring.chosen(self.anchoring, state.anchor_errors, plain, anchored)
 
     def _judged(self, state: ModelEmitterState, plain: jax.Array, anchored: jax.Array | None,
                 repertoire: Repertoire, actions: jax.Array, task: Task,
                 parents: jax.Array | None) -> acquisition.Judged:
         """`Judged` from the members' plain and anchored predictions [E, N, d + 1] of actions [N, n] and their
         parents' slots [N] (-1: none) or None."""
-        y = self.surrogate.chosen(state.surrogate, plain, anchored)
+        y = self.chosen(state, plain, anchored)
         mean = y.mean(axis=0)
         behaviors, qualities = mean[:, :-1], mean[:, -1]
         spread = jnp.sqrt(((y[..., :-1] - behaviors) ** 2).mean(axis=(0, 2)))
@@ -214,8 +259,7 @@ class ModelEmitter(Emitter):
         nearest_quality = jnp.where(nearest[:, 0] >= 0, repertoire.qualities[jnp.maximum(nearest[:, 0], 0)], 0.0)
         novelty, improvement = acquisition.scores_of_neighbours(sq, slots, qualities, repertoire)
         distances = jnp.sqrt(sq)
-        validity = (None if self.surrogate.validity is None
-                    else self.surrogate.validity.probability(state.surrogate.validity, actions, task))
+        validity = self.model.usable(state.surrogate, actions, task)
         parent_novelty = None if parents is None else jnp.where(
             parents >= 0, repertoire.novelty[jnp.maximum(parents, 0)], jnp.nan)
         return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(nearest_sq[:, 0]), nearest_quality, novelty,
@@ -233,13 +277,18 @@ class ModelEmitter(Emitter):
                 pool, steered = self._steered(jax.random.fold_in(key, 2), state, pool, repertoire, task, params, num,
                                               warm_up)
         with jax.named_scope("predict"):
-            x = self.surrogate.inputs(pool.actions, task)  # the pool's features computed here, once
-            plain, anchored = self.surrogate.predictions(state.surrogate, pool.actions, repertoire, task,
-                                                         pool.parents, x)
+            x = self.model.inputs(pool.actions, task)  # the pool's features computed here, once
+            plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents, x)
             judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
         with jax.named_scope("acquire"):
-            rows, rollout, discarded = self.acquisition.select(judged, repertoire, pool.rollout, warm_up,
-                                                               params.part(params.emitter.acquisition), num)
+            rows, rollout, discarded = self.acquisition.select(
+                jax.random.fold_in(key, 5), state.acquisition, judged, repertoire, pool.rollout,
+                params.part(params.emitter.acquisition), num)
+            # During warm-up the pool's first rows as the inner emitter proposed them (the rule's choice unused).
+            first = jnp.arange(num)
+            rows = jnp.where(warm_up, first, rows).astype(jnp.int32)
+            rollout = jnp.where(warm_up, pool.rollout[first], rollout)
+            discarded = jnp.where(warm_up, 0, discarded).astype(jnp.int32)
             from_model = jnp.ones(num, bool)
             if self.fallback is not None:
                 rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
@@ -251,9 +300,9 @@ class ModelEmitter(Emitter):
                 "predicted_distance": jnp.sqrt(kept_sq[:, 0]), "from_model": from_model, "discarded": discarded}
         if self.steering is not None:
             info["steered"] = steered[rows] & rollout
-        if self.surrogate.validity is not None:
+        if self.model.validity is not None:
             info["validity"] = judged.validity[rows]
-        if self.surrogate.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
+        if self.anchoring == "auto":  # both predictions of the kept rows, for the held-out errors
             info["both_behaviors"] = jnp.stack([plain[:, rows].mean(0)[:, :-1], anchored[:, rows].mean(0)[:, :-1]])
         return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows],
                         x[rows, task.action_dim:] if self.keeps_features(task) else None)
@@ -270,8 +319,8 @@ class ModelEmitter(Emitter):
         # `where`) into a NaN Jacobian where forward mode does not: a child that is not finite is not steered, its
         # row keeps the inner emitter's candidate.
         differentiate = jax.jacrev if task.behavior_dim < task.action_dim else jax.jacfwd
-        jacobian = jax.vmap(differentiate(lambda a: self.surrogate.predict(state.surrogate, a, task)[0]))
-        quality_gradient = jax.vmap(jax.grad(lambda a: self.surrogate.predict(state.surrogate, a, task)[1]))
+        jacobian = jax.vmap(differentiate(lambda a: self.model.predict(state.surrogate, a, task)[0]))
+        quality_gradient = jax.vmap(jax.grad(lambda a: self.model.predict(state.surrogate, a, task)[1]))
         children, steering_parents = self.steering.steer(key, repertoire, jacobian, task, params, count,
                                                          quality_gradient)
         on = ~warm_up & (repertoire.count > 0)
@@ -290,10 +339,18 @@ class ModelEmitter(Emitter):
     def update(self, key: jax.Array, state: ModelEmitterState, proposal: Proposal, evaluated: Evaluated,
                repertoire: Repertoire, task: Task, params: Params) -> tuple[ModelEmitterState, dict[str, jax.Array]]:
         evaluations = state.evaluations + proposal.rollout.sum(dtype=jnp.int32)
-        both = proposal.info["both_behaviors"] if self.surrogate.anchoring == "auto" else None
-        surrogate, loss = self.surrogate.update(key, state.surrogate, evaluations >= self.warmup_samples,
-                                                proposal.actions, proposal.rollout, evaluated, both, repertoire, task,
-                                                params.emitter.surrogate, proposal.features)
+        own = params.emitter.surrogate
+        surrogate = self.model.observe(key, state.surrogate, proposal.actions, proposal.rollout, evaluated, task, own,
+                                       proposal.features)
+        with jax.named_scope("train"):
+            surrogate, loss = jax.lax.cond(evaluations >= self.warmup_samples,
+                                           lambda: self.model.fit(key, surrogate, repertoire, task, own),
+                                           lambda: (surrogate, jnp.float32(jnp.nan)))
+        anchor_errors = state.anchor_errors
+        if self.anchoring == "auto":
+            anchor_errors = anchoring.averaged(anchor_errors, proposal.info["both_behaviors"], evaluated)
+        rule = acquisition.updated_state(self.acquisition, jax.random.fold_in(key, 5), state.acquisition, proposal,
+                                         evaluated)
         inner_proposal = Proposal(proposal.actions, proposal.rollout, proposal.info["inner"])
         inner, inner_metrics = self.inner.update(jax.random.fold_in(key, 1), state.inner, inner_proposal, evaluated,
                                                  repertoire, task, params.part(params.emitter.inner))
@@ -306,7 +363,7 @@ class ModelEmitter(Emitter):
             fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
                                     lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
                                                                  evaluated))
-        if self.surrogate.validity is not None:
+        if self.model.validity is not None:
             metrics["validity_auc"] = auc(proposal.info["validity"], proposal.rollout & evaluated.usable,
                                           proposal.rollout & ~evaluated.usable)
         steering = state.steering
@@ -318,13 +375,13 @@ class ModelEmitter(Emitter):
                                     lambda: self._steering_pursuit.update(state.steering, proposal.info["steered"],
                                                                           evaluated))
         return ModelEmitterState(surrogate=surrogate, inner=inner, evaluations=evaluations, fallback=fallback,
-                                 steering=steering), metrics
+                                 steering=steering, anchor_errors=anchor_errors, acquisition=rule), metrics
 
     def _own_metrics(self) -> dict[str, Any]:
         return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32}),
                 **({} if self.steering is None else {"steered": jnp.int32}),
                 **({} if self._steering_pursuit is None else {"steering_share": jnp.float32}),
-                **({} if self.surrogate.validity is None else {"validity_auc": jnp.float32})}
+                **({} if self.model.validity is None else {"validity_auc": jnp.float32})}
 
     @property
     def _steering_pursuit(self) -> Fallback | None:

@@ -4,8 +4,9 @@ a gradient transformation).
     random()                                              -> Uniform()
     qd(iso_sigma, line_sigma)                             -> IsoLine()
     mqd(pool_factor=8, optimism=1.0, ...)                 -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
-                                                                          Diverse(...), Surrogate(anchoring="auto"),
-                                                                          fallback=Fallback(), steering=Steering(...))
+                                                                          Diverse(...), Surrogate(features, gate),
+                                                                          fallback=Fallback(), steering=Steering(...),
+                                                                          anchoring="auto")
     mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua),
                                                                           Surrogate())
                                                              (or Budgeted(pool_factor) when budgeted)
@@ -74,11 +75,12 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
     scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
     surrogate = Surrogate(hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
-                          num_batches=num_batches, learning_rate=learning_rate, anchoring="auto", anchor=anchor,
-                          features=features, gate=Gate() if gate else None)
+                          num_batches=num_batches, learning_rate=learning_rate, features=features,
+                          gate=Gate() if gate else None)
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples, fallback=Fallback(),
-                        steering=Steering(share=steering_share) if steering_share else None)
+                        steering=Steering(share=steering_share) if steering_share else None, anchoring="auto",
+                        anchor=anchor)
 
 
 def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: bool = False, pool_factor: int = 8,

@@ -15,7 +15,8 @@ Files of the older formats 1 to 5 (1 and 2 without checksum; 1 to 3 with
 M-QD's model outside the emitter's state; 1 to 4 with one network where the
 model is now an ensemble; 1 to 5 with the model beside the emitter's other
 parts where its surrogate now holds it; 1 to 6 without a gate; 1 to 7 without the features the repertoire
-keeps per skill, computed from the saved actions) still load.
+keeps per skill, computed from the saved actions; 1 to 8 with anchoring's errors in the surrogate's state
+where the model emitter now holds them, and no acquisition rule's state) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.experiment.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -43,7 +44,7 @@ from mqd_jax.core.run import State, check_state, get_task, init, kept_features, 
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
-FORMAT = 8
+FORMAT = 9
 # The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`), and the gate
 # format 7 added there (a fresh run's, where an older format's state is completed from one).
 _SURROGATE = ("model", "rollouts", "anchor_errors", "validity", "gate")
@@ -160,6 +161,19 @@ def _from_format_7(state: dict[str, Any], cfg: Config) -> dict[str, Any]:
     return {**state, "repertoire": {**rep, "features": features}}
 
 
+def _from_format_8(state: dict[str, Any]) -> dict[str, Any]:
+    """Formats 6-8 held anchoring's averaged errors in the surrogate's state and no rule state; since format 9
+    the model emitter holds both (`ModelEmitterState.anchor_errors`, `.acquisition`; the built-in rules keep
+    none)."""
+    emitter = state["emitter"]
+    if not (isinstance(emitter, dict) and "surrogate" in emitter):
+        return state
+    surrogate = dict(emitter["surrogate"])
+    errors = surrogate.pop("anchor_errors", emitter.get("anchor_errors", {}))
+    return {**state, "emitter": {**emitter, "surrogate": surrogate, "anchor_errors": errors,
+                                 "acquisition": emitter.get("acquisition", {})}}
+
+
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
     _register_pytrees()
@@ -237,7 +251,7 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
             payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
         if payload["format"] < 6:
             payload["state"] = _from_format_5(payload["state"])
-        payload["state"] = _from_format_7(_from_format_6(payload["state"]), cfg)
+        payload["state"] = _from_format_8(_from_format_7(_from_format_6(payload["state"]), cfg))
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

@@ -1,31 +1,17 @@
-"""The surrogate: what M-QD's model knows and how it learns, as one part a `ModelEmitter` composes.
+"""The built-in surrogate: a network (or an ensemble) with its training data, task features, gate and validity
+classifier, as one part a `ModelEmitter` composes.
 
-`Surrogate` holds the forward model (`mqd_jax.surrogate.model`: one network or a
-vmapped ensemble), its training data (the repertoire, or a ring buffer of the
-latest usable rollouts), how its predictions are anchored, and an optional
-classifier of usable rollouts (`Validity`). It predicts (`members`,
-`predictions`, `chosen`, `predict`) and learns from a generation's rollouts
-(`update`); its one traced parameter is Adam's learning rate
-(`SurrogateParams`). With `features` the model also takes the task's features
-of an action (`Task.features`: what the task can compute without physics).
-With a `Gate` (`mqd_jax.surrogate.gate`) it also learns the task's auxiliary
-outputs from every rollout and predicts the null outcome (the object stays
-where it is) for a candidate the gate says does not act.
-What to do with the predictions (the inner emitter, the
-acquisition rule, fallback and steering) is the `ModelEmitter`'s.
-
-`anchoring`: "always" anchors a candidate's prediction at a repertoire skill
-a_j near it, whose true outcome is known: b~(a) = b(a_j) + phi(a) - phi(a_j),
-and likewise the quality. The model then only has to predict differences
-between nearby actions, which helps where behavior is smooth in the action and
-hurts across discontinuities (contact). "auto" keeps an exponential average
-(weight `ERROR_AVERAGING`) of both predictions' held-out behavior error on every
-generation's rollouts and uses the one whose average is lower (the plain one
-until both have one). `anchor` says which skill: "parent", the one the
-candidate was varied from, as the inner emitter names it (a candidate without
-one, -1, keeps its plain prediction; where the inner emitter names none, the
-nearest); "nearest", the skill nearest to it in normalized action space, found
-by a search over the repertoire.
+`Surrogate` keeps the surrogate protocol (`mqd_jax.surrogate.protocol`: `init`, `fit`, `predict`) and the
+hooks the model emitter reads where a surrogate has them. It holds the forward model
+(`mqd_jax.surrogate.model`: one network or a vmapped ensemble), its training data (the repertoire, or a ring
+buffer of the latest usable rollouts, filled by `observe` after every generation) and an optional classifier
+of usable rollouts (`Validity`, trained in `observe`). It predicts (`members`, `predict`) and learns (`fit`);
+its one traced parameter is Adam's learning rate (`SurrogateParams`). With `features` the model also takes
+the task's features of an action (`Task.features`: what the task can compute without physics). With a `Gate`
+(`mqd_jax.surrogate.gate`, trained in `observe`) it also learns the task's auxiliary outputs from every
+rollout, and `overrule` moves a candidate the gate says does not act to the null outcome (the object stays
+where it is). Warm-up, anchoring and the held-out error are the `ModelEmitter`'s; what to do with the
+predictions (the inner emitter, the acquisition rule, fallback and steering) too.
 """
 
 from __future__ import annotations
@@ -38,8 +24,6 @@ import jax.numpy as jnp
 
 from mqd_jax.core import archive as archive_lib
 from mqd_jax.core import pytree
-from mqd_jax.core import repertoire as repertoire_lib
-from mqd_jax.core.averages import running_average
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import Repertoire
@@ -49,10 +33,6 @@ from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.validity import Validity
 
 TRAINING_DATA = ("repertoire", "rollouts")
-ANCHORING = ("none", "always", "auto")
-ANCHORS = ("parent", "nearest")
-# The weight of a generation's held-out error in anchoring="auto"'s averages.
-ERROR_AVERAGING = 0.2
 
 
 @pytree.dataclass
@@ -70,37 +50,25 @@ class SurrogateState:
       model: the forward model's parameters and optimizer state.
       rollouts: the buffer of the latest usable rollouts the model trains on
         (`archive.Archive` of `rollout_buffer` rows), or () when it trains on the repertoire.
-      anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the
-        plain and the anchored predictions (NaN before the first); else ().
       validity: `validity.ValidityState`, or () without a validity classifier.
       gate: `gate.GateState`, or () without a gate.
     """
 
     model: model.ModelState
     rollouts: Any = ()
-    anchor_errors: Any = ()
     validity: Any = ()
     gate: Any = ()
 
 
-def prediction_error(predicted: jax.Array, evaluated: Evaluated) -> jax.Array:
-    """Behavior MSE (real units) of predictions [P, d] on the usable rollouts; NaN if there is none."""
-    usable = evaluated.usable
-    sq_err = jnp.where(usable[:, None], (predicted - evaluated.behaviors) ** 2, 0.0).sum()
-    return jnp.where(usable.any(), sq_err / (usable.sum() * predicted.shape[-1]), jnp.nan)
-
-
 @dataclasses.dataclass(frozen=True)
 class Surrogate:
-    """The forward model, its training data, anchoring and validity classifier.
+    """The forward model, its training data, features, gate and validity classifier (module doc).
 
     Attributes:
       hidden_size: the model's hidden units (per member).
       ensemble_size: the members of the model's ensemble.
       batch_size, num_batches: training mini-batches per generation (per member).
       learning_rate: Adam's rate, the default of the traced `SurrogateParams.learning_rate`.
-      anchoring: "none", "always" or "auto" (see the module's doc).
-      anchor: "parent" or "nearest" (see the module's doc).
       training_data: "repertoire" (its skills, as the paper) or "rollouts" (the latest
         `rollout_buffer` usable rollouts, in a ring buffer).
       rollout_buffer: the size of that buffer.
@@ -117,8 +85,6 @@ class Surrogate:
     batch_size: int = 16
     num_batches: int = 500
     learning_rate: float = 1e-3
-    anchoring: str = "none"
-    anchor: str = "parent"
     training_data: str = "repertoire"
     rollout_buffer: int = 4096
     validity: Validity | None = None
@@ -134,10 +100,6 @@ class Surrogate:
                 raise ValueError(f"Surrogate.{name}={value!r} is invalid: expected an int >= {lowest}")
         if not (is_real(self.learning_rate) and self.learning_rate > 0):
             raise ValueError(f"Surrogate.learning_rate={self.learning_rate!r} is invalid: expected a finite float > 0")
-        if self.anchoring not in ANCHORING:
-            raise ValueError(f"Surrogate.anchoring={self.anchoring!r} is invalid: expected one of {ANCHORING}")
-        if self.anchor not in ANCHORS:
-            raise ValueError(f"Surrogate.anchor={self.anchor!r} is invalid: expected one of {ANCHORS}")
         if self.training_data not in TRAINING_DATA:
             raise ValueError(f"Surrogate.training_data={self.training_data!r} is invalid: expected one of "
                              f"{TRAINING_DATA}")
@@ -188,12 +150,12 @@ class Surrogate:
     def check_params(self, params: SurrogateParams) -> None:
         check_traced("Surrogate.params", "learning_rate", params.learning_rate, inclusive=False)
 
-    def init(self, key: jax.Array, task: Task) -> SurrogateState:
+    def init(self, key: jax.Array, task: Task, capacity: int) -> SurrogateState:
+        """The untrained model (its buffer and classifiers empty); `capacity`, the repertoire's, is not needed."""
         rollouts = (archive_lib.Archive.empty(self.rollout_buffer, task.action_dim, task.behavior_dim)
                     if self.training_data == "rollouts" else ())
         return SurrogateState(model=model.init(key, self.hidden_size, task, self.ensemble_size,
-                                                                features=self.features), rollouts=rollouts,
-                              anchor_errors=jnp.full(2, jnp.nan, jnp.float32) if self.anchoring == "auto" else (),
+                                               features=self.features), rollouts=rollouts,
                               validity=() if self.validity is None else self.validity.init(
                                   jax.random.fold_in(key, 3), task),
                               gate=() if not self._gated(task) else self.gate.init(
@@ -208,62 +170,42 @@ class Surrogate:
 
     def predict(self, state: SurrogateState, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
         """The model's behaviors [..., d] and qualities [...] of actions [..., n] (what steering and skill
-        adaptation differentiate; the ensemble's mean, not anchored)."""
+        adaptation differentiate; the ensemble's mean, not gated)."""
         return model.predict(state.model, actions, task, self.features)
 
-    def predictions(self, state: SurrogateState, actions: jax.Array, repertoire: Repertoire, task: Task,
-                    parents: jax.Array | None = None, x: jax.Array | None = None
-                    ) -> tuple[jax.Array, jax.Array | None]:
-        """The members' plain predictions [E, N, d + 1] of actions [N, n] (their network inputs x where computed
-        already) and, unless `anchoring` is "none", the anchored ones: at the parents' slots [N] (-1: not
-        anchored) with anchor="parent" and parents given, else at the nearest skills."""
-        x = self.inputs(actions, task) if x is None else x
-        plain = self.members(state, actions, task, x)
-        gate = (lambda y: self.gate.gated(state.gate, x, y, task)) if self._gated(task) else (lambda y: y)
-        if self.anchoring == "none":
-            return gate(plain), None
-        if self.anchor == "parent" and parents is not None:
-            anchor, anchored_rows = jnp.maximum(parents, 0), (parents >= 0)[:, None]
-        else:
-            units = lambda a: model.normalize_actions(a, task)  # noqa: E731
-            # Many action dimensions: distances by matrix product (an anchor need only be near, not exactly nearest).
-            _, anchor = repertoire_lib.nearest(repertoire, units(repertoire.actions), units(actions), exact=False)
-            anchored_rows = repertoire.count > 0
-        known = jnp.concatenate([repertoire.behaviors[anchor], repertoire.qualities[anchor, None]], axis=-1)
-        anchored = known + plain - self.members(state, repertoire.actions[anchor], task,
-                                                self.skill_inputs(repertoire, anchor, task))
-        return gate(plain), gate(jnp.where(anchored_rows, anchored, plain))
+    def overrule(self, state: SurrogateState, x: jax.Array, predictions: jax.Array, task: Task) -> jax.Array:
+        """predictions [E, N, d + 1] of candidates with network inputs x [N, ...], with those the gate says do not
+        act moved to the null outcome (unchanged without a gate)."""
+        return self.gate.gated(state.gate, x, predictions, task) if self._gated(task) else predictions
 
-    def chosen(self, state: SurrogateState, plain: jax.Array, anchored: jax.Array | None) -> jax.Array:
-        """The members' predictions [E, N, d + 1] `anchoring` trusts: the plain ones, the anchored ones, or ("auto")
-        whichever had the lower recent held-out error."""
-        if self.anchoring == "always":
-            return anchored
-        if self.anchoring == "auto":
-            return jnp.where(state.anchor_errors[1] < state.anchor_errors[0], anchored, plain)
-        return plain
+    def usable(self, state: SurrogateState, actions: jax.Array, task: Task) -> jax.Array | None:
+        """[N] the validity classifier's probability of a usable rollout of actions [N, n], or None without one."""
+        return None if self.validity is None else self.validity.probability(state.validity, actions, task)
 
-    def update(self, key: jax.Array, state: SurrogateState, due: jax.Array, actions: jax.Array, rollout: jax.Array,
-               evaluated: Evaluated, both_behaviors: jax.Array | None, repertoire: Repertoire, task: Task,
-               params: SurrogateParams, features: jax.Array | None = None) -> tuple[SurrogateState, jax.Array]:
-        """The surrogate after a generation's rollouts of actions [P] (`rollout` [P]: rolled out; `features`
-        [P, f] their features where known), and the mean training loss (NaN when it did not train). Trains the
-        model where `due` (and it has data) on the repertoire (the features it keeps) or its rollout buffer, the
-        validity classifier on the rollouts, and with anchoring "auto" averages both predictions' held-out
-        errors (`both_behaviors` [2, P, d]: the plain and the anchored)."""
-        rollouts, data = state.rollouts, repertoire
+    def fit(self, key: jax.Array, state: SurrogateState, repertoire: Repertoire, task: Task,
+            params: SurrogateParams) -> tuple[SurrogateState, jax.Array]:
+        """The model trained on the repertoire (the features it keeps) or its rollout buffer, and the mean
+        training loss (NaN where the buffer is empty)."""
+        data = repertoire if self.training_data == "repertoire" else state.rollouts
+        has_data = repertoire.count > 0 if self.training_data == "repertoire" else state.rollouts.total > 0
+        trained, loss = jax.lax.cond(
+            has_data, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
+                                          self.num_batches, self.feature_rows if self.featured(task) else None,
+                                          self._kept(repertoire, task)
+                                          if self.training_data == "repertoire" else None),
+            lambda: (state.model, jnp.float32(jnp.nan)))
+        return state.replace(model=trained), loss
+
+    def observe(self, key: jax.Array, state: SurrogateState, actions: jax.Array, rollout: jax.Array,
+                evaluated: Evaluated, task: Task, params: SurrogateParams,
+                features: jax.Array | None = None) -> SurrogateState:
+        """The state after a generation's rollouts of actions [P] (`rollout` [P]: rolled out; `features` [P, f]
+        their features where known), warm-up included: the rollout buffer takes the usable ones, the validity
+        classifier and the gate train on them."""
+        rollouts = state.rollouts
         if self.training_data == "rollouts":
-            rollouts = data = archive_lib.push(state.rollouts, actions, evaluated.behaviors, evaluated.qualities,
-                                               evaluated.usable)
-        has_data = repertoire.count > 0 if self.training_data == "repertoire" else rollouts.total > 0
-        with jax.named_scope("train"):
-            trained, loss = jax.lax.cond(
-                due & has_data, lambda: model.train(state.model, key, data, task, params.learning_rate,
-                                                    self.batch_size, self.num_batches,
-                                                    self.feature_rows if self.featured(task) else None,
-                                                    self._kept(repertoire, task)
-                                                    if self.training_data == "repertoire" else None),
-                lambda: (state.model, jnp.float32(jnp.nan)))
+            rollouts = archive_lib.push(state.rollouts, actions, evaluated.behaviors, evaluated.qualities,
+                                        evaluated.usable)
         validity = state.validity
         if self.validity is not None:
             validity = self.validity.update(jax.random.fold_in(key, 3), state.validity, actions, rollout,
@@ -273,9 +215,4 @@ class Surrogate:
             outcomes = jnp.concatenate([evaluated.behaviors, evaluated.qualities[:, None]], axis=1)
             gate = self.gate.update(jax.random.fold_in(key, 4), state.gate, self.inputs(actions, task, features),
                                     evaluated.auxiliary, outcomes, evaluated.usable, task, params.learning_rate)
-        anchor_errors = state.anchor_errors
-        if self.anchoring == "auto":
-            errors = jax.vmap(prediction_error, in_axes=(0, None))(both_behaviors, evaluated)
-            anchor_errors = running_average(anchor_errors, errors, ERROR_AVERAGING, ~jnp.isnan(errors))
-        return SurrogateState(model=trained, rollouts=rollouts, anchor_errors=anchor_errors, validity=validity,
-                              gate=gate), loss
+        return state.replace(rollouts=rollouts, validity=validity, gate=gate)
