@@ -16,6 +16,8 @@ Written for issue #58 after "mqd" was settled, none with features (what a user's
 * `folded`: a folded many-to-one map of 8 actions: each behavior is a tent map folded 3 times of a fixed random
   projection, so that many far-apart actions share a behavior.
 * `folded_noisy_holed`: the folded map with noise and an invalid band, kept unseen until the end of #58.
+* `hashed`: behaviors no model can predict (a hash of 3 actions, uniform in the box): where the model must step
+  aside.
 """
 
 from __future__ import annotations
@@ -173,6 +175,16 @@ def make_folded(dims: int = 8, folds: int = 3, noise: tuple[float, float] = (0.0
     return Folded((-1.0,) * dims, (1.0,) * dims, (0.0, 0.0), (1.0, 1.0), folds=folds, noise=noise, holed=holed)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class Hashed(Task):
+    """Behavior = a hash of the action (the fractional part of a large multiple of a sine), quality = 0.5."""
+
+    def evaluate(self, actions: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        w = jnp.array([[12.9898, 78.233], [39.346, 11.135], [73.156, 52.235]])
+        behavior = jnp.mod(jnp.sin(actions @ w) * 43758.5453, 1.0)
+        return behavior, jnp.full(actions.shape[0], 0.5), jnp.ones(actions.shape[0], bool)
+
+
 # Tasks defined here, registered by the experiments that name them.
 EXPERIMENT_TASKS = {
     "arm": make_arm, "rugged_arm": make_rugged_arm, "rastrigin": make_rastrigin,
@@ -181,6 +193,7 @@ EXPERIMENT_TASKS = {
     "chain": make_chain, "noisy_chain": lambda: make_chain(noise=(0.01, 0.02)),
     "holed_chain": lambda: make_chain(holed=True), "folded": make_folded,
     "folded_noisy_holed": lambda: make_folded(noise=(0.01, 0.02), holed=True),
+    "hashed": lambda: Hashed((-1.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0)),
 }
 
 

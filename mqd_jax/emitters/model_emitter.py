@@ -52,6 +52,7 @@ from mqd_jax.emitters import acquisition, anchoring
 from mqd_jax.emitters import steering as steering_lib
 from mqd_jax.emitters.anchoring import prediction_error
 from mqd_jax.emitters.pursuit import Fallback
+from mqd_jax.emitters.step_aside import StepAside, explained
 from mqd_jax.surrogate import protocol
 from mqd_jax.surrogate.surrogate import Surrogate
 
@@ -80,6 +81,7 @@ class ModelEmitterState:
       evaluations: int32, this emitter's candidates rolled out so far (warm-up counts them).
       fallback: `FallbackState`, or () without a fallback.
       steering: `pursuit.FallbackState` of a steering pursuit, or ().
+      step_aside: `step_aside.StepAsideState`, or () without stepping aside.
       anchor_errors: anchoring "auto": [2] float32 averaged behavior MSE of the plain and the anchored
         predictions (NaN before the first); else ().
       acquisition: the rule's state (its `init`), or ().
@@ -90,6 +92,7 @@ class ModelEmitterState:
     evaluations: jax.Array
     fallback: Any = ()
     steering: Any = ()
+    step_aside: Any = ()
     anchor_errors: Any = ()
     acquisition: Any = ()
 
@@ -111,6 +114,9 @@ class ModelEmitter(Emitter):
         whose pool holds more than the generation's rollouts besides the steered rows; off during warm-up. A
         child whose Jacobian is not finite (see `_steered`) is not steered: its row keeps the inner candidate.
       anchoring: "none", "always" or "auto"; anchor: "parent" or "nearest" (`mqd_jax.emitters.anchoring`).
+      step_aside: a `StepAside`, or None: while the model's predictions explain no more of its rollouts'
+        behaviors than chance, the generation is the inner emitter's own first candidates. Only with a ranking
+        rule.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -120,9 +126,11 @@ class ModelEmitter(Emitter):
     probability that one which opened a niche had a larger predicted distance
     to the nearest skill than one which did not; ties count 1/2; NaN without
     both kinds), with a
-    fallback `model_share` (the share of the generation's rows from the rule: 1 during warm-up),
+    fallback or `step_aside` `model_share` (the share of the generation's rows from the rule: 1 during warm-up),
     with steering `steered` (the generation's rollouts that were steered children) and, with its pursuit,
-    `steering_share` (the pursuit's share of the steerable rows this generation), with validity
+    `steering_share` (the pursuit's share of the steerable rows this generation), with `step_aside`
+    `model_skill` (the averaged explained variance this generation's choice was made with; NaN before one),
+    with validity
     `validity_auc` (among this generation's rollouts, the probability that a usable one had a higher predicted
     probability of being usable than an unusable one; ties 1/2; NaN without both), and the inner emitter's.
     """
@@ -136,6 +144,7 @@ class ModelEmitter(Emitter):
     steering: steering_lib.Steering | None = None
     anchoring: str = "none"
     anchor: str = "parent"
+    step_aside: StepAside | None = None
 
     # Its surrogate may keep data sized by the repertoire (`init(key, task, capacity)`).
     sized = True
@@ -159,6 +168,9 @@ class ModelEmitter(Emitter):
         ranked = acquisition.is_ranked(self.acquisition)
         if self.fallback is not None and not (isinstance(self.fallback, Fallback) and ranked):
             raise ValueError(f"ModelEmitter.fallback={self.fallback!r} is invalid: expected None, or a Fallback "
+                             "with a ranking acquisition rule (not one whose rows are not ranked, as Threshold's)")
+        if self.step_aside is not None and not (isinstance(self.step_aside, StepAside) and ranked):
+            raise ValueError(f"ModelEmitter.step_aside={self.step_aside!r} is invalid: expected None, or a StepAside "
                              "with a ranking acquisition rule (not one whose rows are not ranked, as Threshold's)")
         if self.steering is not None and not (isinstance(self.steering, steering_lib.Steering) and ranked):
             raise ValueError(f"ModelEmitter.steering={self.steering!r} is invalid: expected None, or a Steering "
@@ -221,6 +233,7 @@ class ModelEmitter(Emitter):
                                  evaluations=jnp.int32(0),
                                  fallback=() if self.fallback is None else self.fallback.init(),
                                  steering=() if self._steering_pursuit is None else self._steering_pursuit.init(),
+                                 step_aside=() if self.step_aside is None else self.step_aside.init(),
                                  anchor_errors=anchoring.init(self.anchoring),
                                  acquisition=acquisition.state_of(self.acquisition, jax.random.fold_in(key, 5), task))
 
@@ -290,8 +303,11 @@ class ModelEmitter(Emitter):
             rollout = jnp.where(warm_up, pool.rollout[first], rollout)
             discarded = jnp.where(warm_up, 0, discarded).astype(jnp.int32)
             from_model = jnp.ones(num, bool)
-            if self.fallback is not None:
-                rows, rollout, from_model = _share(rows, pool.rollout, state.fallback.share, warm_up, num)
+            if self.fallback is not None or self.step_aside is not None:
+                share = jnp.float32(1.0) if self.fallback is None else state.fallback.share
+                if self.step_aside is not None:  # a model at chance chooses none
+                    share = jnp.where(self.step_aside.trusts(state.step_aside), share, 0.0)
+                rows, rollout, from_model = _share(rows, pool.rollout, share, warm_up, num)
         keep = lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x  # noqa: E731
         # The kept rows' predicted distances (the opener AUC's score) searched for them alone, as judged.distance
         # would give them: a rule that reads no distances (Budgeted) then does not pay for a search of the pool.
@@ -358,14 +374,21 @@ class ModelEmitter(Emitter):
                    "prediction_error": prediction_error(proposal.info["predicted_behaviors"], evaluated),
                    "opener_auc": opener_auc(proposal.info["predicted_distance"], evaluated), **inner_metrics}
         fallback, was_warm_up = state.fallback, state.evaluations < self.warmup_samples
-        if self.fallback is not None:
+        if self.fallback is not None or self.step_aside is not None:
             metrics["model_share"] = proposal.info["from_model"].mean(dtype=jnp.float32)
+        if self.fallback is not None:
             fallback = jax.lax.cond(was_warm_up, lambda: state.fallback,
                                     lambda: self.fallback.update(state.fallback, proposal.info["from_model"],
                                                                  evaluated))
         if self.model.validity is not None:
             metrics["validity_auc"] = auc(proposal.info["validity"], proposal.rollout & evaluated.usable,
                                           proposal.rollout & ~evaluated.usable)
+        step_aside = state.step_aside
+        if self.step_aside is not None:
+            metrics["model_skill"] = state.step_aside.skill
+            skill = explained(proposal.info["predicted_behaviors"], evaluated)
+            step_aside = jax.lax.cond(was_warm_up, lambda: state.step_aside,
+                                      lambda: self.step_aside.update(state.step_aside, skill))
         steering = state.steering
         if self.steering is not None:
             metrics["steered"] = proposal.info["steered"].sum(dtype=jnp.int32)
@@ -375,11 +398,14 @@ class ModelEmitter(Emitter):
                                     lambda: self._steering_pursuit.update(state.steering, proposal.info["steered"],
                                                                           evaluated))
         return ModelEmitterState(surrogate=surrogate, inner=inner, evaluations=evaluations, fallback=fallback,
-                                 steering=steering, anchor_errors=anchor_errors, acquisition=rule), metrics
+                                 steering=steering, step_aside=step_aside, anchor_errors=anchor_errors,
+                                 acquisition=rule), metrics
 
     def _own_metrics(self) -> dict[str, Any]:
-        return {**_METRICS, **({} if self.fallback is None else {"model_share": jnp.float32}),
+        shared = self.fallback is not None or self.step_aside is not None
+        return {**_METRICS, **({"model_share": jnp.float32} if shared else {}),
                 **({} if self.steering is None else {"steered": jnp.int32}),
+                **({} if self.step_aside is None else {"model_skill": jnp.float32}),
                 **({} if self._steering_pursuit is None else {"steering_share": jnp.float32}),
                 **({} if self.model.validity is None else {"validity_auc": jnp.float32})}
 

@@ -26,8 +26,10 @@ from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.emitters.baselines import IsoLine, Uniform
 from mqd_jax.emitters.model_emitter import Fallback, ModelEmitter
 from mqd_jax.emitters.steering import Steering
+from mqd_jax.emitters.step_aside import StepAside
 from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.surrogate import Surrogate
+from mqd_jax.surrogate.validity import Validity
 
 # Table II: the model's settings in the paper's two columns (the 2D column is every preset's default).
 TABLE_II = {
@@ -51,7 +53,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         quality_share: float = 0.1, wide_scale: float = 2.0, steering_share: float = 0.25, anchor: str = "parent",
         ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500,
         warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
-        line_sigma: float = 0.1, features: bool = True, gate: bool = True) -> Emitter:
+        line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
+        step_aside: bool = False) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -70,17 +73,21 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         them: no change).
       gate: a `Gate` on the task's auxiliary output "moved" moves candidates predicted not to act to the null
         outcome (`Task.auxiliary`; a task without them: no change).
+      validity: a `Validity` classifier of usable rollouts; the rule puts candidates it judges likely unusable
+        after the others of their tier.
+      step_aside: a `StepAside`: while the model's predictions explain no more of its rollouts' behaviors than
+        chance, the generation is the inner emitter's own (plain QD emission).
     """
     rule = Diverse(pool_factor, optimism, parent_weight=parent_weight, quality_share=quality_share)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
     scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
     surrogate = Surrogate(hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
                           num_batches=num_batches, learning_rate=learning_rate, features=features,
-                          gate=Gate() if gate else None)
+                          gate=Gate() if gate else None, validity=Validity() if validity else None)
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples, fallback=Fallback(),
                         steering=Steering(share=steering_share) if steering_share else None, anchoring="auto",
-                        anchor=anchor)
+                        anchor=anchor, step_aside=StepAside() if step_aside else None)
 
 
 def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: bool = False, pool_factor: int = 8,
