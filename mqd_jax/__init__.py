@@ -14,6 +14,7 @@ from mqd_jax.emitters.baselines import IsoLine, Uniform
 from mqd_jax.emitters.imagination import Imagination
 from mqd_jax.emitters.model_emitter import Fallback, ModelEmitter
 from mqd_jax.emitters.steering import Steering
+from mqd_jax.emitters.step_aside import StepAside
 from mqd_jax.surrogate.surrogate import Surrogate
 from mqd_jax.surrogate.validity import Validity
 from mqd_jax.version import __version__
@@ -35,6 +36,7 @@ __all__ = [
            "Proposal",
            "State",
            "Steering",
+           "StepAside",
            "Surrogate",
            "Task",
            "Threshold",

@@ -298,13 +298,13 @@ def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
 
 def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
     """A config dict of version 0.10 or later in today's options: "mqd" without `features` (before version 0.11)
-    took neither the task's features nor a gate; before version 0.16 (without `validity`) it had neither a
-    validity classifier nor a step aside; a config without `coverage_samples` (before version 0.12, when
-    every behavior space had two dimensions and a coverage grid) takes today's default, which a grid does not
-    read."""
+    took neither the task's features nor a gate; without `validity` (before version 0.16) it had neither a
+    validity classifier nor a step aside, and trained on the repertoire; a config without `coverage_samples`
+    (before version 0.12, when every behavior space had two dimensions and a coverage grid) takes today's
+    default, which a grid does not read."""
     options = dict(saved.get("algorithm_options", {}))
     if saved.get("algorithm") == "mqd" and "features" not in options:
         options.update(features=False, gate=False)
     if saved.get("algorithm") == "mqd" and "validity" not in options:
-        options.update(validity=False, step_aside=False)
+        options.update(validity=False, step_aside=False, training_data="repertoire", rollout_buffer=4096)
     return {"coverage_samples": Config.coverage_samples, **saved, "algorithm_options": options}

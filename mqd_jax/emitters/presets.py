@@ -54,7 +54,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500,
         warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
         line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
-        step_aside: bool = False) -> Emitter:
+        step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -77,13 +77,16 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         after the others of their tier.
       step_aside: a `StepAside`: while the model's predictions explain no more of its rollouts' behaviors than
         chance, the generation is the inner emitter's own (plain QD emission).
+      training_data, rollout_buffer: the model trains on the "repertoire" (Table II) or on its latest
+        `rollout_buffer` usable "rollouts" (`Surrogate.training_data`).
     """
     rule = Diverse(pool_factor, optimism, parent_weight=parent_weight, quality_share=quality_share)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
     scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
     surrogate = Surrogate(hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
                           num_batches=num_batches, learning_rate=learning_rate, features=features,
-                          gate=Gate() if gate else None, validity=Validity() if validity else None)
+                          gate=Gate() if gate else None, validity=Validity() if validity else None,
+                          training_data=training_data, rollout_buffer=rollout_buffer)
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples, fallback=Fallback(),
                         steering=Steering(share=steering_share) if steering_share else None, anchoring="auto",

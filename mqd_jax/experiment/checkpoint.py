@@ -164,14 +164,15 @@ def _from_format_7(state: dict[str, Any], cfg: Config) -> dict[str, Any]:
 def _from_format_8(state: dict[str, Any]) -> dict[str, Any]:
     """Formats 6-8 held anchoring's averaged errors in the surrogate's state and no rule state; since format 9
     the model emitter holds both (`ModelEmitterState.anchor_errors`, `.acquisition`; the built-in rules keep
-    none)."""
+    none) and a step aside's state (empty: the configs of those formats have none)."""
     emitter = state["emitter"]
     if not (isinstance(emitter, dict) and "surrogate" in emitter):
         return state
     surrogate = dict(emitter["surrogate"])
     errors = surrogate.pop("anchor_errors", emitter.get("anchor_errors", {}))
     return {**state, "emitter": {**emitter, "surrogate": surrogate, "anchor_errors": errors,
-                                 "acquisition": emitter.get("acquisition", {})}}
+                                 "acquisition": emitter.get("acquisition", {}),
+                                 "step_aside": emitter.get("step_aside", {})}}
 
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:

@@ -1,3 +1,3 @@
-"""The surrogate: the learned forward model (an ensemble of MLPs, normalization, Adam training), the part a model
-emitter composes (training data, anchoring, predictions, learning) and the validity classifier. Imports `core`
-only."""
+"""The surrogate: what any surrogate is (`protocol`: init, fit, predict), the learned forward model (an ensemble
+of MLPs, normalization, Adam training), the built-in surrogate a model emitter composes (training data, features,
+gate, validity classifier) and the validity classifier. Imports `core` only."""
