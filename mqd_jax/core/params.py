@@ -33,3 +33,17 @@ class Params:
     def part(self, emitter: Any) -> Params:
         """These params with `emitter` as the emitter's part: what a wrapper hands a component it holds."""
         return self.replace(emitter=emitter)
+
+
+def params_of(part: Any) -> Any:
+    """A part's traced parameters (an acquisition rule's, a surrogate's): its `default_params()`, or () for a part
+    without."""
+    default = getattr(part, "default_params", None)
+    return () if default is None else default()
+
+
+def check_params_of(part: Any, params: Any) -> None:
+    """A part's `check_params(params)`, where it has one."""
+    check = getattr(part, "check_params", None)
+    if check is not None:
+        check(params)

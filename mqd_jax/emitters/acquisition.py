@@ -399,15 +399,3 @@ def updated_state(rule: Any, key: jax.Array, state: Any, proposal: Any, evaluate
     update = getattr(rule, "update", None)
     return state if update is None else update(key, state, proposal, evaluated)
 
-
-def params_of(rule: Any) -> Any:
-    """A rule's traced parameters: its `default_params()`, or () for a rule without."""
-    default = getattr(rule, "default_params", None)
-    return () if default is None else default()
-
-
-def check_params_of(rule: Any, params: Any) -> None:
-    """A rule's `check_params(params)`, where it has one."""
-    check = getattr(rule, "check_params", None)
-    if check is not None:
-        check(params)

@@ -45,7 +45,7 @@ from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.emitter import Emitter, Evaluated, Proposal, init_emitter
-from mqd_jax.core.params import Params
+from mqd_jax.core.params import Params, check_params_of, params_of
 from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.core.task import Task
 from mqd_jax.emitters import acquisition, anchoring
@@ -166,15 +166,13 @@ class ModelEmitter(Emitter):
             if not (is_int(value) and value >= lowest):
                 raise ValueError(f"ModelEmitter.{name}={value!r} is invalid: expected an int >= {lowest}")
         ranked = acquisition.is_ranked(self.acquisition)
-        if self.fallback is not None and not (isinstance(self.fallback, Fallback) and ranked):
-            raise ValueError(f"ModelEmitter.fallback={self.fallback!r} is invalid: expected None, or a Fallback "
-                             "with a ranking acquisition rule (not one whose rows are not ranked, as Threshold's)")
-        if self.step_aside is not None and not (isinstance(self.step_aside, StepAside) and ranked):
-            raise ValueError(f"ModelEmitter.step_aside={self.step_aside!r} is invalid: expected None, or a StepAside "
-                             "with a ranking acquisition rule (not one whose rows are not ranked, as Threshold's)")
-        if self.steering is not None and not (isinstance(self.steering, steering_lib.Steering) and ranked):
-            raise ValueError(f"ModelEmitter.steering={self.steering!r} is invalid: expected None, or a Steering "
-                             "with a ranking acquisition rule (Threshold would roll out every steered child)")
+        unranked = "not one whose rows are not ranked, as Threshold's"
+        for name, kind, why in (("fallback", Fallback, unranked), ("step_aside", StepAside, unranked),
+                                ("steering", steering_lib.Steering, "Threshold would roll out every steered child")):
+            part = getattr(self, name)
+            if part is not None and not (isinstance(part, kind) and ranked):
+                raise ValueError(f"ModelEmitter.{name}={part!r} is invalid: expected None, or a {kind.__name__} "
+                                 f"with a ranking acquisition rule ({why})")
         clash = set(self._own_metrics()) & set(self.inner.metrics())
         if clash:
             raise ValueError(f"ModelEmitter: the inner emitter's metrics {sorted(clash)} clash with the model's")
@@ -187,12 +185,12 @@ class ModelEmitter(Emitter):
 
     def default_params(self) -> ModelEmitterParams:
         return ModelEmitterParams(self.model.default_params(), self.inner.default_params(),
-                                  acquisition.params_of(self.acquisition))
+                                  params_of(self.acquisition))
 
     def check_params(self, params: ModelEmitterParams) -> None:
         self.model.check_params(params.surrogate)
         self.inner.check_params(params.inner)
-        acquisition.check_params_of(self.acquisition, params.acquisition)
+        check_params_of(self.acquisition, params.acquisition)
 
     def check_run(self, population_size: int, max_generations: int) -> None:
         self.inner.check_run(self.acquisition.pool_size(population_size), max_generations)

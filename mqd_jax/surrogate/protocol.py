@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 
 from mqd_jax.core.emitter import Evaluated
+from mqd_jax.core.params import check_params_of, params_of
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
 from mqd_jax.surrogate.surrogate import Surrogate
@@ -87,13 +88,10 @@ class Hooks:
             check(task)
 
     def default_params(self) -> Any:
-        default = getattr(self.model, "default_params", None)
-        return () if default is None else default()
+        return params_of(self.model)
 
     def check_params(self, params: Any) -> None:
-        check = getattr(self.model, "check_params", None)
-        if check is not None:
-            check(params)
+        check_params_of(self.model, params)
 
     def init(self, key: jax.Array, task: Task, capacity: int) -> Any:
         return self.model.init(key, task, capacity)
