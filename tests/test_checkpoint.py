@@ -208,10 +208,10 @@ def test_a_crash_while_saving_keeps_the_previous_checkpoint(tmp_path, uninterrup
     checkpoint.save(str(path), state, metrics, CFG, KEY)
     before = path.read_bytes()
 
-    def fail(src, dst):
+    def fail(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(checkpoint.os, "replace", fail)
+    monkeypatch.setattr(folders.os, "replace", fail)
     with pytest.raises(OSError, match="disk full"):
         checkpoint.save(str(path), state.replace(generation=state.generation + 1), metrics, CFG, KEY)
     assert path.read_bytes() == before

@@ -41,11 +41,12 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
         cli.main(argv)
     assert e.value.code == 130
     captured = capsys.readouterr()
-    assert "interrupted at generation 2; the same command with --resume continues" in captured.err
+    assert f"interrupted at generation 2; `mqd run --resume --out {tmp_path}` continues" in captured.err
     assert "Traceback" not in captured.err
     monkeypatch.setattr(cli._Progress, "chunk", chunk)
-    refused(argv, f"holds a checkpoint of this run: `mqd {' '.join(argv)} --resume` continues it")
-    cli.main([*argv, "--resume"])
+    refused(argv, f"holds a checkpoint of this run at generation 2 of 4: `mqd run --resume --out {tmp_path}` continues "
+                  "it; --overwrite starts afresh, deleting those 2 generations")
+    cli.main(["run", "--resume", "--out", str(tmp_path)])  # the saved config: no other flag needed
     out = capsys.readouterr().out
     assert "resuming at generation 2 of 4" in out
     assert re.search(r"^(compiled|loaded the compiled program from the cache|the program was ready .*) in [\d.]+ s$",
@@ -79,7 +80,7 @@ def test_help_shows_the_defaults_that_apply_and_the_task_names(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "--max-generations MAX_GENERATIONS, --generations MAX_GENERATIONS Config.max_generations (default: 100)" \
         in text
-    assert "(default: 0)" in text and "(default: results/run)" in text and "(default: 25)" in text
+    assert "(default: 0;" in text and "(default: results/run)" in text and "(default: 25)" in text
     tasks = "hexapod_omni, hexapod_uni, object2d, obstacle2d, place, place3d, push_cube, push_sphere"
     assert tasks in text and "package.module:factory" in text
     with pytest.raises(SystemExit):

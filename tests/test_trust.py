@@ -19,6 +19,7 @@ import mqd_jax
 from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import diagnostics, registry
 from mqd_jax.core.config import check_params
+from mqd_jax.core.run import init
 from mqd_jax.experiment import checkpoint, cli, folders, results
 from mqd_jax.experiment.sweep import grid, param_names, run_batch, seed_keys
 
@@ -123,7 +124,9 @@ def test_batches_need_agree_only_on_the_options_both_presets_take(tmp_path):
     the options both take (hidden size), not on those one of them has alone (ensemble size, t_nov)."""
     sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
     qd = folders.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
-    checkpoint.save(str(tmp_path / "obstacle2d_mqd.msgpack"), {}, {}, Config(), jax.random.PRNGKey(0))
+    cfg = Config(max_generations=3, population_size=8, capacity=64)
+    checkpoint.save(str(tmp_path / "obstacle2d_mqd.msgpack"), init(jax.random.PRNGKey(0), cfg), {}, cfg,
+                    jax.random.PRNGKey(0))
 
     def add(algorithm, **options):
         config = Config.from_dict(qd["config"])

@@ -184,8 +184,8 @@ def test_a_damaged_checkpoint_says_how_to_start_afresh(tmp_path, refused):
     cli.main(argv)
     path = tmp_path / "checkpoint.msgpack"
     path.write_bytes(path.read_bytes()[:100])
-    refused([*argv, "--resume"], f"the run cannot continue from it: `mqd {' '.join(argv)} --overwrite` starts it "
-                                 "afresh")
+    refused([*argv, "--resume"], "the run cannot continue from it. The run's own command with --overwrite (in place "
+                                 "of --resume) starts it afresh and sets it aside as checkpoint.msgpack.damaged")
 
 
 # 7. Task definitions are checked when a task is made, before anything is allocated.

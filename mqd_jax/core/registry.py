@@ -122,6 +122,9 @@ def _register_plugin(name: str) -> bool:
     module, _, attribute = name.partition(":")
     if not (module and attribute) or name in _FACTORIES:
         return False
+    if not all(part.isidentifier() for part in (*module.split("."), attribute)):
+        raise ValueError(f"task {name!r} is neither a registered task nor a plugin 'package.module:factory' (dotted "
+                         f"Python names): registered: {', '.join(registered_tasks())}")
     try:
         factory = getattr(importlib.import_module(module), attribute)
     except (ImportError, AttributeError) as e:

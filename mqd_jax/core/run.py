@@ -115,10 +115,16 @@ def _empty_coverage(cfg: Config) -> coverage.Grid | coverage.Samples:
 def init(key: jax.Array, cfg: Config) -> State:
     """The state before the first generation: empty repertoire and archive, the emitter's initial state. Jitted.
 
-    Raises ValueError if the task's `evaluate` breaks the task protocol's shapes, or the emitter cannot serve the
-    task (`Emitter.check_task`: a gate needs an auxiliary output the task does not return).
+    Raises ValueError if the task's `evaluate` breaks the task protocol's shapes, if `t_dist` is at least the
+    behavior box's diagonal (one skill would hold the whole box), or the emitter cannot serve the task
+    (`Emitter.check_task`: a gate needs an auxiliary output the task does not return).
     """
     task = get_task(cfg)
+    diagonal = float(np.linalg.norm(np.subtract(task.behavior_high, task.behavior_low)))
+    if cfg.t_dist >= diagonal:
+        raise ValueError(f"Config.t_dist={cfg.t_dist!r} is invalid for the task {cfg.task_name!r}: its behavior box's "
+                         f"diagonal is {diagonal:.4g}, so a single skill would hold the whole box; expected t_dist < "
+                         f"{diagonal:.4g}")
     check_outputs(task, cfg.task_name, cfg.population_size)
     cfg.emitter.check_task(task)
     check_size(cfg)

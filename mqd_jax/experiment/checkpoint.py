@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -41,6 +40,7 @@ from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params, upgraded
 from mqd_jax.core.params import Params
 from mqd_jax.core.run import State, check_state, get_task, init, kept_features, metric_dtypes, run_generations
+from mqd_jax.experiment import folders
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
@@ -175,10 +175,14 @@ def _from_format_8(state: dict[str, Any]) -> dict[str, Any]:
                                  "step_aside": emitter.get("step_aside", {})}}
 
 
-def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array) -> None:
-    """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`."""
+def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array, chunk: int | None = None) -> None:
+    """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`; `chunk`: the
+    generations per compiled call of a batch (`sweep.run_batch`), which its resumption must keep to repeat it bit
+    for bit (read back as the field "chunk")."""
     _register_pytrees()
+    extra = {} if chunk is None else {"chunk": chunk}
     body = serialization.msgpack_serialize({
+        **extra,
         "config": cfg.to_dict(),
         "key": np.asarray(key),
         "state": serialization.to_state_dict(jax.device_get(state)),
@@ -206,12 +210,40 @@ def _restore(path: str, data: bytes) -> Any:
         raise Refused(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from e
 
 
+def _check_fields(path: str, payload: dict[str, Any]) -> None:
+    """Refuses (`Refused`, naming the field) a checkpoint whose fields are missing or of another type or shape: its
+    key [2] or [S, 2] uint32, its state with a generation per run, its metrics one row per generation done.
+
+    The checksum guards against accidents, not a forger (who can compute a new one): these checks, and `load`'s
+    against the config, are what a checkpoint's contents must satisfy."""
+    for name, kind in (("config", dict), ("key", np.ndarray), ("state", dict), ("metrics", dict)):
+        if name not in payload:
+            raise Refused(path, f"it lacks the field {name!r} (not a whole checkpoint)")
+        if not isinstance(payload[name], kind):
+            raise Refused(path, f"its field {name!r} is a {type(payload[name]).__name__}, not a {kind.__name__}")
+    key = payload["key"]
+    if key.dtype != np.uint32 or key.ndim not in (1, 2) or key.shape[-1] != 2:
+        raise Refused(path, f"its key is {key.dtype}{list(key.shape)}, not uint32 [2] or [S, 2]")
+    generation = payload["state"].get("generation")
+    runs = () if key.ndim == 1 else key.shape[:1]
+    if not (isinstance(generation, np.ndarray) and generation.dtype.kind in "iu" and generation.shape == runs):
+        raise Refused(path, f"its state's generation is not an integer of shape {list(runs)}")
+    if generation.size and (generation.min() != generation.max()):
+        raise Refused(path, "its runs are at different generations")
+    done = int(generation.max()) if generation.size else 0
+    for name, value in payload["metrics"].items():
+        if not (isinstance(value, np.ndarray) and value.shape == (*runs, done)):
+            shape = list(np.shape(value)) if isinstance(value, np.ndarray) else type(value).__name__
+            raise Refused(path, f"its metric {name!r} is {shape}, where its {done} generations done make "
+                                f"{[*runs, done]}")
+
+
 def read(path: str) -> dict[str, Any]:
-    """The checkpoint's contents (config, key, state, metrics), checksum verified, older formats converted."""
+    """The checkpoint's contents (config, key, state, metrics), checksum verified, its fields' types and shapes
+    checked (`_check_fields`), older formats converted."""
     try:
-        with open(path, "rb") as f:
-            payload: Any = _restore(path, f.read())
-    except OSError as e:
+        payload: Any = _restore(path, folders.read_bytes(path))
+    except (OSError, folders.NotAFile) as e:
         raise Refused(path, f"cannot read it ({e})") from e
     if not isinstance(payload, dict) or payload.get("format") not in range(1, FORMAT + 1):
         raise Refused(path, f"not an mqd-jax checkpoint of format 1 to {FORMAT}")
@@ -219,8 +251,12 @@ def read(path: str) -> dict[str, Any]:
         body = payload.get("body")
         if not isinstance(body, bytes) or hashlib.sha256(body).hexdigest() != payload.get("sha256"):
             raise Refused(path, "its checksum does not match: the file was altered or damaged")
-        payload = {**_restore(path, body), "format": payload["format"]}
-    elif payload["format"] == 1:
+        body = _restore(path, body)
+        if not isinstance(body, dict):
+            raise Refused(path, "its body is not a dict of fields (not a whole checkpoint)")
+        payload = {**body, "format": payload["format"]}
+    _check_fields(path, payload)
+    if payload["format"] == 1:
         payload["state"] = _from_format_1(payload["state"])
     return payload
 
@@ -228,6 +264,16 @@ def read(path: str) -> dict[str, Any]:
 def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     """The state and metrics saved in `path` by a run of `cfg` started from `key`."""
     payload = read(path)
+    done = int(np.asarray(payload["state"]["generation"]).reshape(-1)[0]) if payload["key"].size else 0
+    if not 0 <= done <= cfg.max_generations:
+        raise Refused(path, f"it is at generation {done}, outside 0 to {cfg.max_generations}, its run's length")
+    metrics = payload["metrics"]
+    unknown = sorted(set(metrics) - set(metric_dtypes(cfg)))
+    if unknown or (done and "coverage" not in metrics):
+        raise Refused(path, f"its metrics are not its config's ({', '.join(unknown) or 'none for its generations'})")
+    counted = done and "num_evaluations" in metrics and "num_evaluations" in payload["state"]
+    if counted and not np.array_equal(payload["state"]["num_evaluations"], metrics["num_evaluations"][..., -1]):
+        raise Refused(path, "its state's rollouts do not match its metrics' count")
     differ = differences(upgraded(payload["config"]), cfg.to_dict())
     if differ:
         raise Refused(path, f"it was written with another config ({differ})")
@@ -309,7 +355,7 @@ def run_with_checkpoints(
         raise ValueError(f"every={every!r} is invalid: expected an int >= 1")
     params = cfg.params() if params is None else params
     check_params(params, cfg)
-    if resume and os.path.exists(path):
+    if resume and folders.lexists(path):
         state, metrics = load(path, cfg, key)
     else:
         state, metrics = init(key, cfg), {}

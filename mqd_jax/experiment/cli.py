@@ -21,7 +21,10 @@ import argparse
 import ast
 import contextlib
 import dataclasses
+import difflib
+import glob
 import json
+import logging
 import math
 import os
 import shlex
@@ -79,6 +82,9 @@ def compilation_cache(enabled: bool) -> tuple[str | None, str]:
         return None, f"no compilation cache ({CACHE_ENV}={folder})"
     if jax.config.jax_compilation_cache_dir:
         folder = jax.config.jax_compilation_cache_dir
+        if not _writable(folder):
+            return None, (f"no compilation cache: JAX's cache folder {folder} (JAX_COMPILATION_CACHE_DIR) cannot be "
+                          "written")
         return folder, f"kept in {folder} for later starts (JAX's own cache folder)"
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     folder = folder or os.path.join(base, "mqd-jax")
@@ -239,13 +245,13 @@ class _Progress:
 
 
 def _say_removed(paths: list[str], why: str) -> None:
-    if paths:
-        print(f"{why}: removed {', '.join(os.path.basename(p) for p in paths)}")
-
-
-def _command(args: argparse.Namespace, drop: tuple[str, ...] = (), add: tuple[str, ...] = ()) -> str:
-    """The command line that was given, without the flags `drop` and with `add`."""
-    return "mqd " + shlex.join([*(a for a in args.argv if a not in drop), *add])
+    """Says which files were removed, and which set aside (`folders.discard`: damaged files, kept as `.damaged`)."""
+    aside = [p for p in paths if ".damaged" in os.path.basename(p)]
+    gone = [p for p in paths if p not in aside]
+    if gone:
+        print(f"{why}: removed {', '.join(os.path.basename(p) for p in gone)}")
+    if aside:
+        print(f"{why}: set aside (damaged, never deleted) as {', '.join(os.path.basename(p) for p in aside)}")
 
 
 def _upgraded_identity(identity: dict[str, Any]) -> dict[str, Any]:
@@ -254,61 +260,144 @@ def _upgraded_identity(identity: dict[str, Any]) -> dict[str, Any]:
         else identity
 
 
-def _finished(path: str, cfg: Config) -> bool:
-    """Whether the checkpoint `path` holds a run that has done all of `cfg`'s generations (False if unreadable)."""
+def _progress_of(path: str) -> tuple[int, int] | None:
+    """(generations done, of how many) of the checkpoint `path`; None where there is none or it is damaged."""
     try:
-        return int(np.asarray(checkpoint.read(path)["state"]["generation"])) >= cfg.max_generations
-    except (ValueError, KeyError, TypeError):
-        return False
+        payload = checkpoint.read(path)
+        return int(np.asarray(payload["state"]["generation"]).reshape(-1)[0]), \
+            int(payload["config"]["max_generations"])
+    except (ValueError, KeyError, TypeError, IndexError):
+        return None
+
+
+def _check_file(path: str) -> None:
+    """Raises ValueError if the results file `path` is damaged (what `--overwrite` sets aside rather than deletes):
+    a checkpoint that `checkpoint.read` refuses, a JSON or npz file that fails its checksum."""
+    if path.endswith(".msgpack"):
+        checkpoint.read(path)
+    elif path.endswith(".json"):
+        folders.read_json(path, "")
+    elif path.endswith(".npz"):
+        folders.read_npz(path, "")
+
+
+def _given(args: argparse.Namespace, flag: str) -> bool:
+    """Whether the command line named `flag` (`--preset`, `--seed`)."""
+    return any(a == flag or a.startswith(flag + "=") for a in args.argv)
+
+
+def _resumed(args: argparse.Namespace, path: str) -> tuple[Config, int]:
+    """The config and seed of the run saved in `args.out` (its manifest, else its checkpoint): what `--resume`
+    continues. Flags given must agree with them: refused (ValueError) otherwise, naming each."""
+    saved = folders.identity(args.out)
+    if not (isinstance(saved, dict) and isinstance(saved.get("config"), dict) and is_seed(saved.get("seed"))):
+        try:
+            saved = {"config": checkpoint.read(path)["config"], "seed": args.seed or 0}
+        except ValueError as e:
+            raise ValueError(f"--resume: {e}; nothing in {args.out!r} says which run it continues") from None
+    saved = _upgraded_identity(saved)
+    try:
+        cfg = Config.from_dict(saved["config"])
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--resume: the config saved in {args.out!r} is invalid ({e}); run afresh in another "
+                         "folder") from None
+    if _given(args, "--preset"):
+        flags = _config(args, defaults=_RUN_DEFAULTS)
+    else:
+        given = {f.name: getattr(args, f.name) for f in dataclasses.fields(Config)
+                 if f.name != "algorithm_options" and getattr(args, f.name, None) is not None}
+        options = {**cfg.to_dict()["algorithm_options"], **dict(args.algorithm_options)}
+        try:
+            flags = Config.from_dict({**cfg.to_dict(), **given, "algorithm_options": options})
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"--resume continues the run saved in {args.out!r} with its own config, which the flags "
+                             f"given contradict ({e}); leave them out: `mqd run --resume --out {args.out}`") from None
+    differ = folders.differences({**cfg.to_dict(), "seed": saved["seed"]},
+                         {**flags.to_dict(), "seed": saved["seed"] if args.seed is None else args.seed})
+    if differ:
+        raise ValueError(f"--resume continues the run saved in {args.out!r} with its own config and seed, which the "
+                         f"flags given contradict ({differ}); leave them out: `mqd run --resume --out {args.out}`")
+    return cfg, saved["seed"]
+
+
+def is_seed(seed: Any) -> bool:
+    """Whether `seed` is a seed of `mqd run`: an int from 0 to SEEDS - 1."""
+    return isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < SEEDS
 
 
 def _run(args: argparse.Namespace) -> None:
-    if not 0 <= args.seed < SEEDS:
+    if args.seed is not None and not is_seed(args.seed):
         raise ValueError(f"--seed {args.seed} is invalid: expected an int from 0 to {SEEDS - 1} (PRNGKey(seed): "
                          "larger seeds would share keys)")
     if args.resume and args.overwrite:
         raise ValueError("--resume and --overwrite together: --resume continues the run in the folder, --overwrite "
                          "starts it afresh; give one")
-    cfg = _config(args, defaults=_RUN_DEFAULTS)
-    key = jax.random.PRNGKey(args.seed)
     path = os.path.join(args.out, "checkpoint.msgpack")
-    progress = _Progress("", cfg.max_generations)
-    args.interrupted = lambda: (f"interrupted at generation {progress.done}; " + (
-        "the same command with --resume continues from there" if progress.done else "nothing was saved"))
+    resume = f"mqd run --resume --out {shlex.quote(args.out)}"
+    done = [0]
+
+    def interrupted() -> str:
+        if done[0]:
+            return f"interrupted at generation {done[0]}; `{resume}` continues from there"
+        kept = os.path.lexists(path)
+        return ("interrupted before a generation was saved; " +
+                (f"the checkpoint already in {args.out} is kept as it was" if kept else "nothing was saved"))
+
+    args.interrupted = interrupted
     with folders.lock(args.out) as leftovers:
         _say_removed(leftovers, "left by an interrupted writer")
-        if args.resume and not os.path.exists(path):
+        if args.resume and not folders.is_file(path):
             raise ValueError(f"--resume: {args.out!r} holds no checkpoint; run without --resume to start")
-        _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": args.seed}, RUN_FILES,
-                                   args.overwrite, upgrade=_upgraded_identity), "--overwrite")
-        if os.path.exists(path) and not args.resume:
-            if not args.overwrite and _finished(path, cfg):
+        if args.resume:
+            cfg, seed = _resumed(args, path)
+        else:
+            cfg, seed = _config(args, defaults=_RUN_DEFAULTS), args.seed or 0
+        key = jax.random.PRNGKey(seed)
+        args.task_now = cfg.task_name
+        progress = _Progress("", cfg.max_generations)
+        saved = _progress_of(path) if folders.is_file(path) else None
+        stake = f"; its checkpoint holds {saved[0]} of {saved[1]} generations" if saved else ""
+        _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": seed}, RUN_FILES,
+                                   args.overwrite, upgrade=_upgraded_identity, check=_check_file, at_stake=stake),
+                     "--overwrite")
+        if folders.is_file(path) and not args.resume:
+            if not args.overwrite and saved and saved[0] >= cfg.max_generations:
                 raise ValueError(f"{args.out!r} holds this run, finished ({cfg.max_generations} generations): its "
-                                 "results are there; --overwrite runs it again (removing them)")
+                                 "results are there; --overwrite runs it again (deleting them)")
             if not args.overwrite:
-                raise ValueError(f"{args.out!r} holds a checkpoint of this run: `{_command(args, add=('--resume',))}`"
-                                 " continues it; --overwrite starts afresh (removing it)")
-            ours = [os.path.join(args.out, n) for n in folders.written(args.out) if n in RUN_FILES]
-            for p in ours:
-                os.remove(p)
-            _say_removed(ours, "--overwrite (starting afresh)")
+                what = f"at generation {saved[0]} of {saved[1]}" if saved else "that is damaged"
+                fate = f"deleting those {saved[0]} generations" if saved else "setting the damaged one aside"
+                raise ValueError(f"{args.out!r} holds a checkpoint of this run {what}: `{resume}` continues it; "
+                                 f"--overwrite starts afresh, {fate}")
+            ours = [n for n in folders.written(args.out) if n in RUN_FILES]
+            _say_removed(folders.discard(args.out, ours, _check_file), "--overwrite (starting afresh)")
 
         def start(state: State, metrics: dict[str, np.ndarray]) -> None:
             if metrics:
                 print(f"resuming at generation {int(state.generation)} of {cfg.max_generations} from {path}")
             progress.resume(int(state.generation), metrics)
+            done[0] = progress.done
             if int(state.generation) < cfg.max_generations:
                 progress.compiling(args.cache)
+
+        def chunk(state: State, metrics: dict[str, np.ndarray]) -> None:
+            done[0] = int(state.generation)
+            progress.chunk(done[0], metrics)
 
         began = time.perf_counter()
         try:
             state, metrics = checkpoint.run_with_checkpoints(
                 key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
-                on_compiled=progress.compiled, on_chunk=lambda s, m: progress.chunk(int(s.generation), m))
+                on_compiled=progress.compiled, on_chunk=chunk)
         except checkpoint.Refused as e:
-            fresh = _command(args, drop=("--resume",), add=("--overwrite",))
-            raise ValueError(f"{e}; the run cannot continue from it: `{fresh}` starts it afresh") from e
-        meta = {"config": cfg.to_dict(), "seed": args.seed, "key": np.asarray(key).tolist(),
+            fresh = "The run's own command with --overwrite (in place of --resume)"
+            try:
+                _check_file(path)
+                fate = f"deletes it ({saved[0]} of {saved[1]} generations)" if saved else "deletes it"
+            except ValueError:
+                fate = "sets it aside as checkpoint.msgpack.damaged (never deletes it)"
+            raise ValueError(f"{e}; the run cannot continue from it. {fresh} starts it afresh and {fate}") from e
+        meta = {"config": cfg.to_dict(), "seed": seed, "key": np.asarray(key).tolist(),
                 "coverage_measured": results.coverage_measure(cfg, metrics["coverage"][-1]),
                 "implementation": results.implementation(cfg), "provenance": provenance()}
         folders.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
@@ -317,16 +406,16 @@ def _run(args: argparse.Namespace) -> None:
         description = json.dumps(meta)
         folders.write_npz(os.path.join(args.out, "repertoire.npz"), actions=rep.actions[:n],
                           behaviors=rep.behaviors[:n], qualities=rep.qualities[:n], meta=np.asarray(description))
-        title = f"{cfg.task}, {cfg.algorithm}, seed {args.seed}, {cfg.max_generations} generations"
+        title = f"{cfg.task}, {cfg.algorithm}, seed {seed}, {cfg.max_generations} generations"
         figure = plots.run_figure(get_task(cfg), metrics, rep.behaviors[:n], os.path.join(args.out, "run.png"),
                                   title, description)
-    written = [f for f in RUN_FILES if f != "run.png" or figure]
-    print(f"done: coverage {metrics['coverage'][-1]:.3f} ({meta['coverage_measured']}), "
-          f"QD-score {metrics['qd_score'][-1]:.2f}, max quality {metrics['max_quality'][-1]:.3f}, "
-          f"mean quality {metrics['mean_quality'][-1]:.3f}, {n} skills, "
-          f"{int(metrics['num_evaluations'][-1])} evaluations, "
-          f"{time.perf_counter() - began:.1f} s (compilation included); wrote "
-          + ", ".join(os.path.join(args.out, f) for f in written))
+        written = [f for f in RUN_FILES if f != "run.png" or figure]
+        print(f"done: coverage {metrics['coverage'][-1]:.3f} ({meta['coverage_measured']}), "
+              f"QD-score {metrics['qd_score'][-1]:.2f}, max quality {metrics['max_quality'][-1]:.3f}, "
+              f"mean quality {metrics['mean_quality'][-1]:.3f}, {n} skills, "
+              f"{int(metrics['num_evaluations'][-1])} evaluations, "
+              f"{time.perf_counter() - began:.1f} s (compilation included); wrote "
+              + ", ".join(os.path.join(args.out, f) for f in [*written, folders.MANIFEST]))
 
 
 def _distinct_file_names(tasks: list[str]) -> None:
@@ -349,9 +438,17 @@ def _sweep(args: argparse.Namespace) -> None:
                          f"takes it (mqd run --help lists each one's options)")
     configs = [_config(args, task=t, algorithm=a) for t in args.tasks for a in args.algorithms]
     batches = [(cfg, np.asarray(sweep.seed_keys(args.seeds or get_task(cfg).paper_seeds))) for cfg in configs]
-    where = ["before the first batch"]
-    args.interrupted = lambda: (f"interrupted {where[0]}; finished batches are kept in {args.out}: the same "
-                                "command continues with the next one")
+    where: list[Any] = ["before the first batch", None]  # where, and the running batch's progress
+
+    def interrupted() -> str:
+        text = f"interrupted {where[0]}"
+        if where[1] is not None and where[1].done:
+            return (f"{text} at generation {where[1].done} of {where[1].total}: its checkpoint keeps them, and the "
+                    f"same command continues this batch from generation {where[1].done}; finished batches are kept "
+                    f"in {args.out}")
+        return f"{text}; finished batches are kept in {args.out}, and the same command continues from there"
+
+    args.interrupted = interrupted
     with folders.lock(args.out) as leftovers:
         _say_removed(leftovers, "left by an interrupted writer")
         _say_removed(folders.claim(args.out, "sweep", {}, results.files(), args.overwrite), "--overwrite")
@@ -382,15 +479,21 @@ def _sweep(args: argparse.Namespace) -> None:
                                 for cfg, keys in batches])
         for cfg, keys in batches:
             label = f"{cfg.task} {cfg.algorithm}, {len(keys)} seeds: "
+            part = results.stem(args.out, cfg) + results.PART
             if results.is_done(found, args.out, cfg, keys):
                 print(f"{label}already in {args.out}, skipped")
+                _say_removed(folders.remove_written(args.out, [glob.escape(os.path.basename(part))]), "finished")
                 continue
             progress = _Progress(label, cfg.max_generations)
-            where[0] = f"in {label.rstrip(': ')}"
+            where[:] = [f"in {label.rstrip(': ')}", progress]
+            args.task_now = cfg.task_name
+            begun, chunk = _resumed_batch(args, part, cfg, keys, progress)
             progress.compiling(args.cache)
             start = time.perf_counter()
-            states, metrics = sweep.run_batch(cfg, keys, chunk=args.chunk, on_chunk=progress.chunk,
-                                              on_compiled=progress.compiled)
+            states, metrics = sweep.run_batch(
+                cfg, keys, chunk=chunk, on_chunk=progress.chunk, on_compiled=progress.compiled, start=begun,
+                on_state=lambda s, m, cfg=cfg, keys=keys, part=part, chunk=chunk: checkpoint.save(
+                    part, s, m, cfg, keys, chunk=chunk))
             wall = time.perf_counter() - start
             print(f"{label}done: coverage {metrics['coverage'][:, -1].mean():.3f} +- "
                   f"{metrics['coverage'][:, -1].std():.3f}, {metrics['num_evaluations'][:, -1].mean():.0f} "
@@ -399,6 +502,38 @@ def _sweep(args: argparse.Namespace) -> None:
             results.save_runs(args.out, cfg, keys, states, metrics, wall)
         where[0] = "while tabulating"
         _plot(args.out)
+
+
+def _resumed_batch(args: argparse.Namespace, part: str, cfg: Config, keys: np.ndarray,
+                   progress: _Progress) -> tuple[tuple[State, dict[str, np.ndarray]] | None, int]:
+    """Where a sweep's batch starts: from its checkpoint `part` (an interrupted batch: its states, metrics and
+    chunk size, so it ends bit for bit as without the stop), or afresh (None, --chunk). A damaged checkpoint is set
+    aside; one of another config or keys is refused unless --overwrite, which deletes it."""
+    if not folders.is_file(part) or os.path.basename(part) not in folders.written(args.out):
+        return None, args.chunk
+    try:
+        chunk = checkpoint.read(part).get("chunk")
+        if not (isinstance(chunk, int) and chunk >= 1):
+            raise checkpoint.Refused(part, "it records no chunk size")
+    except ValueError as e:
+        print(f"{e}\nthe batch starts afresh; its checkpoint is set aside as "
+              f"{', '.join(folders.set_aside([part]))}")
+        return None, args.chunk
+    try:
+        states, metrics = checkpoint.load(part, cfg, keys)
+    except checkpoint.Refused as e:
+        if not args.overwrite:
+            raise ValueError(f"{e}. Pass --overwrite to run the batch afresh (it deletes that checkpoint), or "
+                             "write to another folder") from None
+        _say_removed(folders.discard(args.out, [os.path.basename(part)]), "--overwrite")
+        return None, args.chunk
+    done = int(np.asarray(states.generation)[0])
+    if chunk != args.chunk:
+        print(f"{progress.label}continues in chunks of {chunk} generations, as it began (--chunk {args.chunk} is "
+              "taken by batches that start afresh), so that it ends bit for bit as without the stop")
+    print(f"{progress.label}resuming at generation {done} of {cfg.max_generations} from {part}")
+    progress.resume(done, metrics)
+    return (states, metrics), chunk
 
 
 def _adapt(args: argparse.Namespace) -> None:
@@ -485,17 +620,24 @@ def _render(args: argparse.Namespace) -> None:
     if not os.path.isdir(args.dir):
         raise ValueError(f"{args.dir!r} does not exist: give the folder a `mqd run` wrote")
     files = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
-    missing = [f for f in files if not os.path.exists(f)]
+    missing = [f for f in files if not os.path.lexists(f)]
     if missing:
         raise ValueError(f"{missing[0]!r} is missing: {args.dir!r} is not a whole folder of `mqd run` (metrics.json, "
                          "repertoire.npz)")
     repair = f"the `mqd run` that made it, with --resume --out {args.dir}, writes it again from its checkpoint"
     saved = folders.read_json(files[0], repair)
-    arrays = folders.read_npz(files[1], repair)
-    if "config" not in saved or not {"actions", "behaviors"} <= set(arrays):
-        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no config, actions or behaviors): {repair}")
-    cfg = Config.from_dict(saved["config"])
+    if not isinstance(saved.get("config"), dict):
+        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no config in metrics.json): {repair}")
+    try:
+        cfg = Config.from_dict(upgraded(saved["config"]))
+    except (TypeError, ValueError) as e:
+        raise folders.Damaged(files[0], f"holds an invalid config ({e})", repair) from None
+    arrays = folders.read_npz(files[1], repair, results.npz_bytes(cfg))
+    if not {"actions", "behaviors"} <= set(arrays):
+        raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no actions or behaviors): {repair}")
     actions, behaviors = arrays["actions"], arrays["behaviors"]
+    if len(actions) == 0:
+        raise ValueError(f"{files[1]!r} holds no skills (the run inserted none): there is nothing to render")
     if args.goal is not None and not all(math.isfinite(g) for g in args.goal):
         raise ValueError(f"--goal {' '.join(map(str, args.goal))} is invalid: expected finite numbers")
     if args.goal is not None and len(args.goal) != behaviors.shape[1]:
@@ -542,13 +684,13 @@ def _locked_plot(args: argparse.Namespace) -> None:
 
 
 def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
-    parser = argparse.ArgumentParser(prog="mqd", description="Model-Based Quality-Diversity search in JAX")
+    parser = _Parser(prog="mqd", description="Model-Based Quality-Diversity search in JAX")
     sub = parser.add_subparsers(dest="command", required=True)
-    cache = argparse.ArgumentParser(add_help=False)
+    cache = _Parser(add_help=False)
     cache.add_argument("--no-cache", dest="cache", action="store_false",
                        help=f"do not keep compiled programs in the persistent cache (${CACHE_ENV}, default "
                             "~/.cache/mqd-jax)")
-    writes = argparse.ArgumentParser(add_help=False)
+    writes = _Parser(add_help=False)
     writes.add_argument("--overwrite", action="store_true",
                         help="replace results of another config in the folder (otherwise refused); removes only "
                              "files mqd-jax wrote there")
@@ -556,12 +698,14 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     run = sub.add_parser("run", parents=[cache, writes], help="run one search and write metrics, repertoire and a plot",
                          epilog=_presets_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_config_flags(run, defaults=_RUN_DEFAULTS)
-    run.add_argument("--seed", type=int, default=0,
-                     help=f"the run's key is PRNGKey(seed), 0 <= seed < {SEEDS} (default: %(default)s)")
+    run.add_argument("--seed", type=int, default=None,
+                     help=f"the run's key is PRNGKey(seed), 0 <= seed < {SEEDS} (default: 0; with --resume, the "
+                          "saved run's)")
     run.add_argument("--chunk", type=_positive, default=25,
                      help="generations per chunk: one progress line and one checkpoint each (default: %(default)s)")
     run.add_argument("--resume", action="store_true",
-                     help="continue from OUT/checkpoint.msgpack (without it, a checkpoint in OUT is refused)")
+                     help="continue the run saved in OUT from its checkpoint, with its saved config and seed (no other "
+                          "flags needed; flags given must agree with them); without it, a checkpoint in OUT is refused")
     run.add_argument("--out", default="results/run", help="results folder (default: %(default)s)")
 
     sw = sub.add_parser("sweep", parents=[cache, writes],
@@ -624,30 +768,79 @@ def _one_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {text[0] if text else 'no message'}"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors are one line (with a "did you mean" for a mistyped flag), not the usage."""
+
+    def error(self, message: str) -> Any:
+        flags = [o for a in self._actions for o in a.option_strings if o.startswith("--")]
+        words = [w for w in message.split() if w.startswith("--")] if "unrecognized" in message else []
+        close = difflib.get_close_matches(words[0].split("=")[0], flags, n=1) if words else []
+        hint = f"did you mean {close[0]}? " if close else ""
+        self.exit(2, f"{self.prog}: error: {message} ({hint}`{self.prog} --help` lists the flags)\n")
+
+
+class _CallbackFailures(logging.Handler):
+    """Keeps, silently, what a task's host callback (`jax.pure_callback`) raised: JAX logs its traceback and then
+    fails the program with an error that names neither the task nor the cause; the command says both, in a line."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.raised: BaseException | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.exc_info and record.exc_info[1] is not None:
+            self.raised = record.exc_info[1]
+
+
+@contextlib.contextmanager
+def _callbacks_caught() -> Any:
+    """Catches the traceback JAX's callback module logs (`_CallbackFailures`) while a command runs, unless
+    MQD_TRACEBACK asks for tracebacks."""
+    logger, handler = logging.getLogger("jax._src.callback"), _CallbackFailures()
+    if os.environ.get(TRACEBACK_ENV):
+        yield handler
+        return
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
 def main(argv: list[str] | None = None) -> None:
     parser, subparsers = _parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     args, unknown = parser.parse_known_args(argv)
-    if unknown:  # the subcommand's usage, not the top level's
+    if unknown:  # the subcommand's one line, not the top level's
         subparsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = argv
     args.cache = compilation_cache(getattr(args, "cache", False))[1]
     args.interrupted = lambda: "interrupted"  # run and sweep say where
-    try:
-        _COMMANDS[args.command](args)
-    except ValueError as e:  # invalid configuration or input: one line that says what, no traceback
-        print(f"mqd {args.command}: error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print(f"\n{args.interrupted()}", file=sys.stderr)
-        raise SystemExit(130) from None
-    except Exception as e:  # a file that cannot be written, a task's own failure: one line too
-        if os.environ.get(TRACEBACK_ENV):
-            raise
-        where = args.interrupted().replace("interrupted", "stopped", 1)
-        print(f"mqd {args.command}: error: {_one_line(e)} ({where}; {TRACEBACK_ENV}=1 shows the traceback)",
-              file=sys.stderr)
-        raise SystemExit(2) from None
+    args.task_now = None  # the task running (run and sweep set it): what a callback's failure names
+    with _callbacks_caught() as callbacks:
+        try:
+            _COMMANDS[args.command](args)
+        except ValueError as e:  # invalid configuration or input: one line that says what, no traceback
+            print(f"mqd {args.command}: error: {e}", file=sys.stderr)
+            raise SystemExit(2) from None
+        except KeyboardInterrupt:
+            print(f"\n{args.interrupted()}", file=sys.stderr)
+            raise SystemExit(130) from None
+        except Exception as e:  # a file that cannot be written, a task's own failure: one line too
+            if os.environ.get(TRACEBACK_ENV):
+                raise
+            where = args.interrupted().replace("interrupted", "stopped", 1)
+            what = _one_line(e)
+            if callbacks.raised is not None:
+                task = f"the task {args.task_now!r}" if args.task_now else "the task"
+                what = (f"{task} failed during the run: its host callback (jax.pure_callback) raised "
+                        f"{_one_line(callbacks.raised)}")
+            print(f"mqd {args.command}: error: {what} ({where}; {TRACEBACK_ENV}=1 shows the traceback)",
+                  file=sys.stderr)
+            raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -1,5 +1,15 @@
 """Results folders: one writer at a time, one config per folder, files written whole and checksummed.
 
+* Pinned: `lock(folder)` opens the folder once (a directory descriptor) and,
+  while it is held, every read, write, rename and removal of a file of that
+  folder (`os.path.join(folder, name)` given to any function here) goes
+  relative to that descriptor, never through the path again: a folder renamed
+  or replaced under a running command (`mv R R.orig; mkdir R`, or a link
+  swapped in) cannot redirect a single byte: the command finishes in the folder
+  it started in, and says where that folder now is when it no longer sits at
+  its path. Results files are only ever regular files: every open is
+  non-blocking and never follows a link, so a FIFO, a device or a link named
+  like a result is refused, naming it, instead of hanging a command.
 * `lock(folder)`: held while a command writes a folder. A second writer is
   refused with a ValueError; the kernel releases the lock when its process ends,
   however it ends (`flock`), so a killed run leaves no stale lock, and a process
@@ -12,7 +22,12 @@
   mqd-jax has written in it (`write_atomically` adds each name before the file
   is written). Writing another identity into it is refused with the differing
   fields named, unless `overwrite`, which first removes the files the manifest
-  lists, and nothing else: a user's own files in the folder are never removed.
+  lists (those that fail their checks, `check`, are set aside as `.damaged`,
+  never deleted), and nothing else: a user's own files in the folder are never
+  removed. A folder without a sound manifest loses only files mqd-jax can prove
+  it wrote (JSON, npz, msgpack and PNG files carrying its provenance); anything
+  else named like a result (a table, a link, a folder, a FIFO) is refused with
+  the list, even with `overwrite`.
   A manifest entry must be a plain file name directly in the folder (no path,
   no `..`, no link): anything else makes the manifest damaged, so no command
   ever removes or writes a file outside its folder. In a folder with a manifest,
@@ -29,6 +44,12 @@
   JSON file with NaN or Infinity literals (not JSON) or nested too deep to read.
   Infinite values are written as the strings "Infinity" and "-Infinity" (JSON
   has no number for them), with a warning naming the key that holds them.
+  Reads are bounded: `read_npz` checks every member's declared and inflated
+  size and its npy header against the bytes the caller's config implies
+  (`max_bytes`) before reading it, and a JSON file larger than `MAX_JSON` is
+  refused unread. The checksum guards against accidents (a truncated or
+  altered file), not against a forger, who can compute a new one: what a
+  file's contents must satisfy is checked by its reader.
 """
 
 from __future__ import annotations
@@ -43,13 +64,14 @@ import json
 import math
 import os
 import re
+import secrets
 import stat
-import tempfile
+import sys
 import warnings
 import zipfile
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from flax import serialization
@@ -60,8 +82,10 @@ MANIFEST = "mqd.json"
 LOCK = ".mqd.lock"
 TMP_SUFFIX = ".mqdtmp"
 CHECKSUM = "sha256"  # the key (JSON) or array (npz) that holds a file's checksum
-_UMASK = os.umask(0o022)
-os.umask(_UMASK)  # read, then restored: the process's umask is unchanged
+MAX_JSON = 2**30  # the largest JSON file read (bytes): a sweep of 25 seeds x 10,000 generations is under 200 MB
+NPZ_SLACK = 2**24  # bytes an npz may hold beyond the arrays its config implies (its `meta` text)
+# Folders pinned by `lock`: absolute path as given -> the descriptor every file operation in it goes through.
+_PINNED: dict[str, int] = {}
 
 
 class Damaged(ValueError):
@@ -75,26 +99,118 @@ class Damaged(ValueError):
         self.path = path
 
 
+class NotAFile(ValueError):
+    """A path named like a results file that is not a regular file (a FIFO, a device, a folder or a link)."""
+
+    def __init__(self, path: str, what: str) -> None:
+        super().__init__(f"{path!r} is {what}, not a regular file: mqd-jax reads and writes only regular files "
+                         "(and never follows a link there); move it away, or write to another folder")
+        self.path = path
+
+
+def _at(path: str) -> tuple[int | None, str]:
+    """(descriptor, name) of `path` in a pinned folder, else (None, path): what the `dir_fd` calls take."""
+    fd = _PINNED.get(os.path.abspath(os.path.dirname(path) or "."))
+    return (None, path) if fd is None else (fd, os.path.basename(path))
+
+
+def make_folder(folder: str) -> None:
+    """Makes `folder` (and its parents) unless it is pinned (`lock`): a pinned folder is there, wherever it sits."""
+    if os.path.abspath(folder) not in _PINNED:
+        os.makedirs(folder, exist_ok=True)
+
+
+def _lstat(path: str) -> os.stat_result | None:
+    """The path's own status (a link's, not its target's); None if nothing is there."""
+    fd, name = _at(path)
+    try:
+        return os.stat(name, dir_fd=fd, follow_symlinks=False)
+    except FileNotFoundError:
+        return None
+
+
+def lexists(path: str) -> bool:
+    """Whether anything (a file, a link, a folder ...) is at `path` (in its pinned folder, if pinned)."""
+    return _lstat(path) is not None
+
+
+def is_file(path: str) -> bool:
+    """Whether `path` is a regular file (not a link, folder, FIFO or device)."""
+    found = _lstat(path)
+    return found is not None and stat.S_ISREG(found.st_mode)
+
+
+def _what(mode: int) -> str:
+    return ("a symbolic link" if stat.S_ISLNK(mode) else "a folder" if stat.S_ISDIR(mode) else
+            "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device")
+
+
+def listdir(folder: str) -> list[str]:
+    """The names in `folder` (through its descriptor, if pinned; [] for a folder that is not there)."""
+    fd = _PINNED.get(os.path.abspath(folder))
+    if fd is None and not os.path.isdir(folder):
+        return []
+    return os.listdir(folder if fd is None else fd)
+
+
+def remove(path: str) -> None:
+    """Removes the file `path` (in its pinned folder, if pinned); never a folder."""
+    fd, name = _at(path)
+    os.unlink(name, dir_fd=fd)
+
+
+def open_file(path: str, max_bytes: int | None = None) -> IO[bytes]:
+    """`path` opened for reading: only a regular file, never through a link, never blocking (a FIFO named like a
+    result is refused at once); raises `NotAFile` for anything else, ValueError for one larger than `max_bytes`,
+    OSError as `open` does."""
+    fd, name = _at(path)
+    try:
+        handle = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, dir_fd=fd)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise NotAFile(path, "a symbolic link") from None
+        raise
+    found = os.fstat(handle)
+    if not stat.S_ISREG(found.st_mode):
+        os.close(handle)
+        raise NotAFile(path, _what(found.st_mode))
+    if max_bytes is not None and found.st_size > max_bytes:
+        os.close(handle)
+        raise ValueError(f"it is {found.st_size} bytes, more than the {max_bytes} its reader allows")
+    return os.fdopen(handle, "rb")
+
+
+def read_bytes(path: str, max_bytes: int | None = None) -> bytes:
+    """The contents of the regular file `path` (`open_file`)."""
+    with open_file(path, max_bytes) as f:
+        return f.read()
+
+
 def write_atomically(path: str, data: bytes) -> None:
     """Writes `data` to a temporary file and renames it over `path`: a crash leaves the old file or the new one.
 
     In a folder with a manifest (`claim`), the file's name is recorded in it first, so that `--overwrite` knows
     every file mqd-jax wrote there, a file interrupted halfway included; a file already there that the manifest
-    does not list (a user's) is refused with a ValueError, never replaced.
+    does not list (a user's) is refused with a ValueError, never replaced. In a pinned folder (`lock`) every step
+    goes through the folder's descriptor.
     """
     _record(os.path.dirname(path) or ".", os.path.basename(path))
-    fd, tmp = tempfile.mkstemp(prefix=os.path.basename(path) + ".", suffix=TMP_SUFFIX,
-                               dir=os.path.dirname(path) or ".")
+    fd, name = _at(path)
+    found = _lstat(path)
+    if found is not None and not stat.S_ISREG(found.st_mode):
+        raise NotAFile(path, _what(found.st_mode))
+    tmp = f"{name}.{secrets.token_hex(4)}{TMP_SUFFIX}"
+    # O_EXCL | O_NOFOLLOW: a new file of our own, never one placed there; the umask sets its mode, as `open`'s.
+    handle = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666, dir_fd=fd)
     try:
-        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes the file private; results files get the usual mode
-        with os.fdopen(fd, "wb") as f:
+        with os.fdopen(handle, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(tmp, name, src_dir_fd=fd, dst_dir_fd=fd)
     except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp, dir_fd=fd)
         raise
 
 
@@ -157,8 +273,7 @@ def read_json(path: str, repair: str) -> dict[str, Any]:
     or does not match it.
     """
     try:
-        with open(path, "rb") as f:
-            data = json.loads(f.read(), parse_constant=_not_json)
+        data = json.loads(read_bytes(path, MAX_JSON), parse_constant=_not_json)
     except RecursionError as e:
         raise Damaged(path, "cannot be read (nested too deep)", repair) from e
     except (OSError, ValueError) as e:  # ValueError: JSONDecodeError and UnicodeDecodeError
@@ -191,12 +306,44 @@ def write_npz(path: str, **arrays: np.ndarray) -> None:
     write_atomically(path, buffer.getvalue())
 
 
-def read_npz(path: str, repair: str) -> dict[str, np.ndarray]:
+def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, budget: int) -> np.ndarray:
+    """One array of an npz file, read only after its declared size and its npy header fit `budget` bytes, and
+    never more bytes than the header declares (a member that inflates further is damaged)."""
+    if info.file_size > budget:
+        raise ValueError(f"its member {info.filename!r} declares {info.file_size} bytes, more than the {budget} "
+                         "its config implies")
+    with zf.open(info) as member:
+        version = np.lib.format.read_magic(member)
+        if version not in ((1, 0), (2, 0)):
+            raise ValueError(f"its member {info.filename!r} has npy format {version}")
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+            np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(member)
+        if dtype.hasobject:
+            raise ValueError(f"its member {info.filename!r} holds Python objects (never read)")
+        nbytes = math.prod(shape) * dtype.itemsize
+        if nbytes > budget:
+            raise ValueError(f"its member {info.filename!r} declares shape {shape} of {dtype} ({nbytes} bytes), more "
+                             f"than the {budget} its config implies")
+        data = member.read(nbytes)
+        if len(data) != nbytes or member.read(1):
+            raise ValueError(f"its member {info.filename!r} does not hold the {nbytes} bytes its header declares")
+    array = np.frombuffer(data, dtype).reshape(shape, order="F" if fortran else "C")
+    return array.copy()
+
+
+def read_npz(path: str, repair: str, max_bytes: int = 2**31) -> dict[str, np.ndarray]:
     """The arrays `write_npz` wrote to `path`, their checksum verified (and removed); raises `Damaged` like
-    `read_json`."""
+    `read_json`, and for a file whose arrays (declared sizes, npy headers, inflated bytes) exceed `max_bytes`, what
+    the caller's config implies: nothing past that is read or allocated."""
     try:
-        with np.load(path, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files}
+        with open_file(path) as f, zipfile.ZipFile(f) as zf:
+            arrays, budget = {}, max_bytes
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    raise ValueError(f"its member {info.filename!r} is not an array")
+                arrays[info.filename[:-4]] = array = _read_member(zf, info, budget)
+                budget -= array.nbytes
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
         raise Damaged(path, f"cannot be read ({type(e).__name__}: {e})", repair) from e
     digest = arrays.pop(CHECKSUM, None)
@@ -207,6 +354,28 @@ def read_npz(path: str, repair: str) -> dict[str, np.ndarray]:
     return arrays
 
 
+def _check_path(folder: str) -> None:
+    """Refuses (ValueError) a folder path the system cannot hold (a name longer than its file system allows, or
+    a path longer than PATH_MAX) before any of its folders is made."""
+    parts = [p for p in os.path.abspath(folder).split(os.sep) if p]
+    existing = os.sep
+    for part in parts:  # the deepest folder that exists: its file system's limits
+        if not os.path.isdir(os.path.join(existing, part)):
+            break
+        existing = os.path.join(existing, part)
+    try:
+        longest, total = os.pathconf(existing, "PC_NAME_MAX"), os.pathconf(existing, "PC_PATH_MAX")
+    except (OSError, ValueError):
+        return
+    long = [p for p in parts if len(os.fsencode(p)) > longest]
+    if long:
+        raise ValueError(f"{folder!r} is invalid: its part {long[0][:40]!r}... is {len(os.fsencode(long[0]))} bytes, "
+                         f"more than the {longest} a name may have here; give a shorter --out")
+    if len(os.fsencode(os.path.abspath(folder))) + len(MANIFEST) + 40 > total:
+        raise ValueError(f"{folder!r} is invalid: the path is longer than the {total} bytes a path may have here "
+                         "(with its files' names); give a shorter --out")
+
+
 def _make_folder(folder: str, create: bool) -> None:
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ValueError(f"{folder!r} is a file, not a folder: give another --out")
@@ -215,34 +384,37 @@ def _make_folder(folder: str, create: bool) -> None:
                          "points to")
     if not create and not os.path.isdir(folder):
         raise ValueError(f"{folder!r} does not exist: give a folder that `mqd sweep` wrote")
+    _check_path(folder)
     os.makedirs(folder, exist_ok=True)
 
 
-def _open_lock(path: str) -> int:
-    """The lock file `path`, opened (created if missing) and locked: never through a link, only a regular file of
-    one name. Raises ValueError if another process holds it or the path is not such a file."""
+def _open_lock(folder: int, shown: str) -> int:
+    """The lock file in the folder `folder` (a descriptor), opened (created if missing) and locked: never through a
+    link, only a regular file of one name. Raises ValueError if another process holds it or the path is not such a
+    file (`shown`: the lock's path, for messages)."""
     while True:
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644)
+            fd = os.open(LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644,
+                         dir_fd=folder)
         except OSError as e:
             if e.errno != errno.ELOOP:
                 raise
-            raise ValueError(f"{path!r} is a symbolic link, not mqd-jax's lock file (mqd-jax never follows it): "
+            raise ValueError(f"{shown!r} is a symbolic link, not mqd-jax's lock file (mqd-jax never follows it): "
                              "remove it") from None
         opened = os.fstat(fd)
         if not stat.S_ISREG(opened.st_mode) or opened.st_nlink != 1:
             os.close(fd)
             what = "a file with other hard links" if stat.S_ISREG(opened.st_mode) else "not a regular file"
-            raise ValueError(f"{path!r} is not mqd-jax's lock file ({what}): remove it")
+            raise ValueError(f"{shown!r} is not mqd-jax's lock file ({what}): remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
             os.close(fd)
-            raise ValueError(f"{os.path.dirname(path)!r} is being written by another mqd process (pid {holder}): "
+            raise ValueError(f"{os.path.dirname(shown)!r} is being written by another mqd process (pid {holder}): "
                              "wait for it to finish, or write to another folder") from None
-        try:  # a holder that finished removed the file we opened: lock the one the path names now
-            now = os.stat(path, follow_symlinks=False)
+        try:  # a holder that finished removed the file we opened: lock the one the folder holds now
+            now = os.stat(LOCK, dir_fd=folder, follow_symlinks=False)
         except FileNotFoundError:
             now = None
         if now is not None and (now.st_dev, now.st_ino) == (opened.st_dev, opened.st_ino):
@@ -260,33 +432,65 @@ def _leftovers(folder: str) -> list[str]:
     if saved is None:
         return []
     ours = {MANIFEST, *saved["written"]}
-    made = re.compile(r"(.+)\.[A-Za-z0-9_]{8}" + re.escape(TMP_SUFFIX))  # tempfile.mkstemp's names
-    return sorted(os.path.join(folder, n) for n in os.listdir(folder)
-                  if (m := made.fullmatch(n)) and m.group(1) in ours)
+    made = re.compile(r"(.+)\.[A-Za-z0-9_]{8}" + re.escape(TMP_SUFFIX))  # write_atomically's (and mkstemp's) names
+    return sorted(os.path.join(folder, n) for n in listdir(folder)
+                  if (m := made.fullmatch(n)) and m.group(1) in ours and is_file(os.path.join(folder, n)))
+
+
+def where_now(fd: int) -> str | None:
+    """Where the folder open as `fd` sits now (Linux's /proc), or None where the system does not say."""
+    try:
+        return os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:
+        return None
 
 
 @contextlib.contextmanager
 def lock(folder: str, create: bool = True) -> Iterator[list[str]]:
-    """Holds `folder`'s write lock (creating the folder if `create`, else refusing a missing one); yields the
-    leftover temporary files of killed writers it removed. The lock file is removed when the lock is released.
+    """Holds `folder`'s write lock (creating the folder if `create`, else refusing a missing one) and pins it: until
+    the lock is released, every file operation of this module on a path in `folder` goes through the descriptor
+    opened here, so a folder moved or replaced meanwhile cannot redirect a write (see the module's docstring).
+    Yields the leftover temporary files of killed writers it removed. The lock file is removed when the lock is
+    released; if the folder no longer sits at its path then, a line on standard error says where it is.
 
     Raises ValueError if another process holds it, if the folder is missing and not `create`, or if the lock
     file's path is anything but a regular file (a link is never followed).
     """
     _make_folder(folder, create)
-    path = os.path.join(folder, LOCK)
-    fd = _open_lock(path)
+    key = os.path.abspath(folder)
+    if key in _PINNED:
+        raise ValueError(f"{folder!r} is already locked by this process")
+    pin = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        fd = _open_lock(pin, os.path.join(folder, LOCK))
+    except BaseException:
+        os.close(pin)
+        raise
+    _PINNED[key] = pin
     try:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         leftovers = _leftovers(folder)
         for leftover in leftovers:  # no other writer can be writing them: we hold the lock
-            os.remove(leftover)
+            remove(leftover)
         yield leftovers
     finally:
+        del _PINNED[key]
         with contextlib.suppress(OSError):  # still ours (we hold its lock): nobody else can be using it
-            os.remove(path)
+            os.unlink(LOCK, dir_fd=pin)
         os.close(fd)
+        try:
+            here = os.stat(folder)
+        except OSError:
+            here = None
+        pinned = os.fstat(pin)
+        if here is None or (here.st_dev, here.st_ino) != (pinned.st_dev, pinned.st_ino):
+            now = where_now(pin)
+            print(f"note: {folder!r} was moved or replaced while this command ran; everything it wrote is in the "
+                  f"folder it started in, {'now at ' + repr(now) if now else 'which is no longer at that path'} "
+                  f"({folder!r} now holds {'nothing' if here is None else 'another folder'}, left untouched)",
+                  file=sys.stderr)
+        os.close(pin)
 
 
 def differences(saved: Mapping[str, Any], now: Mapping[str, Any]) -> str:
@@ -303,13 +507,14 @@ def set_aside(paths: Sequence[str]) -> list[str]:
     """
     moved = []
     for path in paths:
-        if not os.path.exists(path):
+        if not lexists(path):
             continue
         target, n = path + ".damaged", 1
-        while os.path.exists(target):
+        while lexists(target):
             n += 1
             target = f"{path}.damaged-{n}"
-        os.replace(path, target)
+        (fd, name), (_, new) = _at(path), _at(target)
+        os.rename(name, new, src_dir_fd=fd, dst_dir_fd=fd)
         moved.append(target)
     return moved
 
@@ -322,11 +527,11 @@ def _plain_name(name: Any) -> bool:
 
 def _manifest(folder: str) -> dict[str, Any] | None:
     """The manifest of `folder` (None if it has none); raises `Damaged` for a damaged one, and for one that names
-    anything but plain file names of the folder's regular files (a path, `..`, a folder or a link)."""
+    anything but plain file names of the folder's regular files (a path, `..`, a folder, a link or a FIFO)."""
     path = os.path.join(folder, MANIFEST)
-    if not os.path.lexists(path):
+    if not lexists(path):
         return None
-    repair = ("pass --overwrite to replace the folder's results (only files mqd-jax recognisably wrote are "
+    repair = ("pass --overwrite to replace the folder's results (only files mqd-jax can prove it wrote are "
               "removed), or write to another folder")
     saved = read_json(path, repair)
     if not (isinstance(saved.get("identity"), dict) and isinstance(saved.get("written"), list)):
@@ -334,10 +539,10 @@ def _manifest(folder: str) -> dict[str, Any] | None:
     for name in saved["written"]:
         if not _plain_name(name) or name in (MANIFEST, LOCK):
             raise Damaged(path, f"lists {name!r}, which is not a plain file name of the folder", repair)
-        full = os.path.join(folder, name)
-        if os.path.lexists(full) and (os.path.islink(full) or not os.path.isfile(full)):
-            raise Damaged(path, f"lists {name!r}, which is {'a link' if os.path.islink(full) else 'not a file'} "
-                          "(mqd-jax writes only files)", repair)
+        found = _lstat(os.path.join(folder, name))
+        if found is not None and not stat.S_ISREG(found.st_mode):
+            raise Damaged(path, f"lists {name!r}, which is {_what(found.st_mode)} (mqd-jax writes only files)",
+                          repair)
     return saved
 
 
@@ -348,7 +553,7 @@ def _record(folder: str, name: str) -> None:
         return
     saved = _manifest(folder)
     if saved is not None and name not in saved["written"]:
-        if os.path.lexists(os.path.join(folder, name)):
+        if lexists(os.path.join(folder, name)):
             raise ValueError(f"{os.path.join(folder, name)!r} is not written by mqd-jax here (not in its manifest "
                              f"{MANIFEST}), so it is not replaced: move it away, or write to another folder")
         saved["written"].append(name)
@@ -386,11 +591,20 @@ def kind(folder: str) -> str | None:
     return None if saved is None else saved.get("kind")
 
 
+def identity(folder: str) -> dict[str, Any] | None:
+    """What the manifest of `folder` says the folder holds (a run's config and seed); None without a sound one."""
+    try:
+        saved = _manifest(folder)
+    except Damaged:
+        return None
+    return None if saved is None else saved["identity"]
+
+
 def written(folder: str, saved: dict[str, Any] | None = None) -> list[str]:
     """The names of the files in `folder` that mqd-jax wrote there (its manifest's list, read unless `saved`
     gives it; [] without one)."""
     saved = _manifest(folder) if saved is None else saved
-    return [] if saved is None else [n for n in saved["written"] if os.path.exists(os.path.join(folder, n))]
+    return [] if saved is None else [n for n in saved["written"] if is_file(os.path.join(folder, n))]
 
 
 def remove_written(folder: str, patterns: Sequence[str]) -> list[str]:
@@ -398,69 +612,102 @@ def remove_written(folder: str, patterns: Sequence[str]) -> list[str]:
     mqd-jax (nothing in a folder without a manifest); returns their paths. A user's file is never removed."""
     removed = [os.path.join(folder, n) for n in written(folder) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
     for path in removed:
-        os.remove(path)
+        remove(path)
     return removed
 
 
-def _carries_provenance(path: str) -> bool:
-    """Whether `path` is a results file of any mqd-jax version, recognised by the provenance in it (a folder
-    without a manifest, written by mqd-jax before 0.9.0)."""
+MARK = "<!-- mqd-jax: "  # the last line of every markdown file mqd-jax writes: its provenance, as JSON
+
+
+def _png_text(data: bytes, key: bytes) -> str | None:
+    """The tEXt entry `key` of the PNG `data` (None if it has none, or is not a PNG)."""
+    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return None
+    at = 8
+    while at + 8 <= len(data):
+        size, kind = int.from_bytes(data[at:at + 4], "big"), data[at + 4:at + 8]
+        body = data[at + 8:at + 8 + size]
+        if kind == b"tEXt" and body.partition(b"\0")[0] == key:
+            return body.partition(b"\0")[2].decode("latin-1")
+        if kind == b"IEND":
+            return None
+        at += 12 + size
+    return None
+
+
+def carries_provenance(path: str) -> bool:
+    """Whether the regular file `path` is a results file of any mqd-jax version, proved by the provenance in it
+    (for a folder without a sound manifest): JSON with a "provenance", an npz with "meta", a checkpoint, a PNG
+    whose Description holds mqd-jax's provenance, markdown ending with its mark. A link, a FIFO or anything
+    unreadable is not."""
+    def provenanced(text: Any) -> bool:
+        return isinstance(text, dict) and ("provenance" in text or any(
+            isinstance(v, dict) and "provenance" in v for v in text.values()))
+
     try:
-        if path.endswith(".json"):
-            with open(path, "rb") as f:
-                data = json.loads(f.read())
-            return isinstance(data, dict) and ("provenance" in data or any(
-                isinstance(v, dict) and "provenance" in v for v in data.values()))
         if path.endswith(".npz"):
-            with np.load(path, allow_pickle=False) as f:
-                return "meta" in f.files
+            with open_file(path) as f, zipfile.ZipFile(f) as zf:
+                return "meta.npy" in zf.namelist()
+        data = read_bytes(path, MAX_JSON)
+        if path.endswith(".json"):
+            return provenanced(json.loads(data))
         if path.endswith(".msgpack"):
-            with open(path, "rb") as f:
-                data = serialization.msgpack_restore(f.read())
-            return isinstance(data, dict) and "format" in data
-    except Exception:  # unreadable: not recognisably ours
+            restored = serialization.msgpack_restore(data)
+            return isinstance(restored, dict) and "format" in restored
+        if path.endswith(".png"):
+            return provenanced(json.loads(_png_text(data, b"Description") or "null"))
+        if path.endswith(".md"):
+            last = data.decode().rstrip("\n").rpartition("\n")[2]
+            return last.startswith(MARK) and provenanced(json.loads(last[len(MARK):].removesuffix(" -->")))
+    except Exception:  # unreadable, or not a regular file: not provably ours
         return False
-    return path.endswith((".md", ".png"))  # tables and figures: made from the results, named as mqd-jax names them
+    return False
 
 
 def _matching(folder: str, patterns: Sequence[str]) -> list[str]:
-    """The names of the files in `folder` that match the glob `patterns`."""
-    names = os.listdir(folder) if os.path.isdir(folder) else []
-    return sorted(n for n in names if any(fnmatch.fnmatchcase(n, p) for p in patterns))
+    """The names in `folder` (files or not) that match the glob `patterns`."""
+    return sorted(n for n in listdir(folder) if any(fnmatch.fnmatchcase(n, p) for p in patterns))
 
 
 def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequence[str], overwrite: bool,
-          upgrade: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> list[str]:
-    """Makes `folder` the results folder of `identity` (call while holding its lock); returns the files removed.
+          upgrade: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+          check: Callable[[str], None] | None = None, at_stake: str = "") -> list[str]:
+    """Makes `folder` the results folder of `identity` (call while holding its lock); returns the files removed or
+    set aside.
 
     `patterns` are the glob patterns of the files this kind of command writes. The
     folder may already hold results of the same kind and identity (a run is then
     written again, a sweep continued). Anything else of ours in it (other
     identity, other kind, results without a manifest, a damaged manifest) is
-    refused with a ValueError naming what differs, unless `overwrite`: then
-    those results are removed first: the files the manifest lists or, without
-    one, the files matching `patterns` that carry mqd-jax's provenance. A user's
-    file is never removed: one whose name matches `patterns` is refused, even with
-    `overwrite`, naming it. `upgrade` brings an identity saved by an earlier version to today's form before it
-    is compared.
+    refused with a ValueError naming what differs and what `overwrite` would
+    delete (`at_stake` adds to that, e.g. a checkpoint's progress), unless
+    `overwrite`: then those results are removed first: the files the manifest
+    lists or, without one, the files matching `patterns` that carry mqd-jax's
+    provenance (`carries_provenance`). A file that fails `check` (which raises
+    ValueError for a damaged file) is set aside as `.damaged`, not removed. A
+    user's file is never removed: anything named like `patterns` that mqd-jax
+    cannot prove it wrote (a table without its mark, a link, a folder, a FIFO) is
+    refused, even with `overwrite`, with the list. `upgrade` brings an identity
+    saved by an earlier version to today's form before it is compared.
     """
     try:
         saved = _manifest(folder)
     except Damaged as e:
         if not overwrite:
             raise
-        print(f"{e}\n--overwrite removes only the files mqd-jax recognisably wrote and writes a new manifest")
+        print(f"{e}\n--overwrite removes only the files mqd-jax can prove it wrote and writes a new manifest")
         saved = None
     named = _matching(folder, patterns)
     if saved is not None:
         ours = written(folder, saved)
     else:
-        ours = [n for n in named if _carries_provenance(os.path.join(folder, n))]
+        ours = [n for n in named if carries_provenance(os.path.join(folder, n))]
     foreign = [n for n in named if n not in ours and n != MANIFEST]
     if foreign:
         raise ValueError(f"{folder!r} refused: {', '.join(foreign)} {'is' if len(foreign) == 1 else 'are'} not "
-                         "written by mqd-jax here (not in its manifest mqd.json) but named like its results: move "
-                         f"{'it' if len(foreign) == 1 else 'them'} away, or write to another folder")
+                         "written by mqd-jax here (not in its manifest mqd.json, and not provably its results) but "
+                         f"named like its results: move {'it' if len(foreign) == 1 else 'them'} away, or write to "
+                         "another folder (mqd-jax never removes them)")
     if saved is not None and upgrade is not None:
         saved["identity"] = upgrade(saved["identity"])
     if saved is not None and saved.get("kind") == kind and _as_read(saved.get("identity")) == _as_read(dict(identity)):
@@ -475,13 +722,27 @@ def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequenc
         flat = lambda d: {**{k: v for k, v in d.items() if k != "config"}, **d.get("config", {})}  # noqa: E731
         why = f"it holds results of another run ({differences(flat(saved['identity']), flat(identity))})"
     if why is not None and not overwrite:
-        raise ValueError(f"{folder!r} refused: {why}. Pass --overwrite to replace them (only files mqd-jax wrote "
-                         "are removed), or write to another folder")
-    removed = [os.path.join(folder, n) for n in ours] if why is not None else []
-    for p in removed:
-        os.remove(p)
+        raise ValueError(f"{folder!r} refused: {why}. Write to another folder, or pass --overwrite to replace "
+                         f"them: it deletes {', '.join(ours)}{at_stake} (damaged files are set aside, never deleted)")
+    removed = discard(folder, ours, check) if why is not None else []
     payload = {"kind": kind, "identity": dict(identity), "written": [] if why is not None else ours,
                "provenance": provenance()}
     write_json(os.path.join(folder, MANIFEST), payload)
     return removed
 
+
+def discard(folder: str, names: Sequence[str], check: Callable[[str], None] | None = None) -> list[str]:
+    """Removes these files of `folder` (names mqd-jax wrote), but sets aside (`set_aside`) each that fails `check`
+    (damaged: kept as `.damaged`); returns what was removed and, for each set aside, its new path."""
+    done = []
+    for name in names:
+        path = os.path.join(folder, name)
+        try:
+            if check is not None:
+                check(path)
+        except ValueError:
+            done += set_aside([path])
+            continue
+        remove(path)
+        done.append(path)
+    return done

@@ -7,6 +7,7 @@ so) when matplotlib is not installed: results files never depend on it.
 from __future__ import annotations
 
 import io
+import json
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ import numpy as np
 from mqd_jax.adaptation import METHODS
 from mqd_jax.core.task import Task
 from mqd_jax.experiment.folders import write_atomically
+from mqd_jax.experiment.provenance import provenance
 from mqd_jax.experiment.results import NAMES, Runs
 
 
@@ -31,11 +33,12 @@ def pyplot() -> Any:
 
 
 def save(fig: Any, path: str, description: str | None = None) -> str:
-    """Writes `fig` to `path` atomically (PNG, 100 dpi; `description` goes into the PNG's Description text) and
-    says so."""
+    """Writes `fig` to `path` atomically (PNG, 100 dpi; `description`, by default mqd-jax's provenance as JSON, goes
+    into the PNG's Description text: what proves the figure mqd-jax's) and says so."""
     fig.tight_layout()
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100, metadata={"Description": description} if description else None)
+    description = description or json.dumps({"provenance": provenance()})
+    fig.savefig(buffer, format="png", dpi=100, metadata={"Description": description})
     write_atomically(path, buffer.getvalue())
     pyplot().close(fig)  # pyplot keeps every open figure alive: a long sweep would hold them all
     print(f"wrote {path}")

@@ -11,6 +11,10 @@ One folder per sweep. For every task and algorithm run:
   provenance, as a JSON string).
 * `<task>_mqd.msgpack` (M-QD only): the final states, as a checkpoint
   (`mqd_jax.experiment.checkpoint`) with keys [S, 2]: what `mqd adapt` adapts.
+* `<task>_<algorithm>.part.msgpack` while the batch runs: its states and
+  metrics after each chunk (a checkpoint with keys [S, 2] and the chunk size),
+  from which an interrupted batch resumes, bit for bit; removed once the batch
+  is saved.
 
 `mqd adapt` adds `adaptation.json` ({task: {"source": the SHA-256 of the
 `<task>_mqd.msgpack` it adapted, "config", "keys", "provenance", "methods":
@@ -32,6 +36,7 @@ tables and figures (`adaptation`).
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import glob
 import hashlib
 import json
@@ -79,16 +84,23 @@ def _batch_patterns(task: str = "*") -> list[str]:
 
 def files() -> tuple[str, ...]:
     """The files a sweep folder holds (glob patterns, for `folders.claim`) and those made from them."""
-    return (*_batch_patterns(), "*_mqd.msgpack", ADAPTATION, *DERIVED)
+    return (*_batch_patterns(), "*_mqd.msgpack", *(f"*_{a}{PART}" for a in algorithms.names()), ADAPTATION,
+            *DERIVED)
+
+
+PART = ".part.msgpack"  # a running batch's checkpoint: `<task>_<algorithm>.part.msgpack`
 
 
 def write_markdown(lines: list[str], path: str, show: bool = True) -> None:
-    """Writes a markdown report to `path` atomically (creating its folder), and prints it if `show`."""
+    """Writes a markdown report to `path` atomically (creating its folder unless it is a locked one), and prints
+    it if `show`. Its last line is an HTML comment (invisible where markdown is shown) with mqd-jax's provenance
+    (`folders.MARK`): what proves the file mqd-jax's in a folder without a manifest."""
     text = "\n".join(lines)
     if show:
         print(text)
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    write_atomically(path, (text + "\n").encode())
+    folders.make_folder(os.path.dirname(path) or ".")
+    mark = folders.MARK + json.dumps({"provenance": provenance()}) + " -->"
+    write_atomically(path, (text + "\n\n" + mark + "\n").encode())
 
 
 def file_name(task: str) -> str:
@@ -123,20 +135,40 @@ def missing(out: str) -> list[tuple[str, str]]:
     """(task, algorithm) of each batch a `mqd sweep` planned in `out` (its manifest) that is not there."""
     return [(e["task"], e["algorithm"]) for e in folders.planned(out)
             if isinstance(e.get("task"), str) and isinstance(e.get("algorithm"), str)
-            and not os.path.exists(_stem(out, e["task"], e["algorithm"]) + ".json")]
+            and not folders.lexists(_stem(out, e["task"], e["algorithm"]) + ".json")]
+
+
+def npz_bytes(cfg: Config, runs: int = 1) -> int:
+    """The most bytes the npz of `runs` final repertoires of `cfg` may hold (float32 actions, behaviors and
+    qualities of `capacity` skills, a count per run, and `folders.NPZ_SLACK` for its meta text): what a read of one
+    allocates at most."""
+    task = get_task(cfg)
+    return runs * (cfg.capacity * (task.action_dim + task.behavior_dim + 1) + 1) * 8 + folders.NPZ_SLACK
+
+
+def _batch_config(saved: dict[str, Any], path: str, fix: str) -> Config:
+    """The config a batch's JSON holds; raises `Damaged` (naming `path`) for one that is not a valid config."""
+    try:
+        return Config.from_dict(upgraded(saved["config"]))
+    except (TypeError, ValueError, KeyError, AttributeError) as e:
+        raise Damaged(path, f"holds an invalid config ({type(e).__name__}: {e})", fix) from e
 
 
 def _read_batch(out: str, stem: str) -> dict[str, Any]:
-    """The saved JSON of the batch `stem`, every file of it verified (checksums, contents); raises `Damaged`."""
+    """The saved JSON of the batch `stem`, every file of it verified (checksums, contents, sizes bounded by its
+    config); raises `Damaged`."""
     fix = repair(out, stem)
     saved = read_json(stem + ".json", fix)
     missing = [k for k in BATCH_KEYS if k not in saved]
     if missing:
         raise Damaged(stem + ".json", f"lacks {', '.join(map(repr, missing))} (not a complete batch of `mqd sweep`)",
                       fix)
-    if not os.path.exists(stem + ".npz"):
+    if not (isinstance(saved["config"], dict) and isinstance(saved["keys"], list)):
+        raise Damaged(stem + ".json", "holds a config or keys of the wrong type", fix)
+    cfg = _batch_config(saved, stem + ".json", fix)
+    if not folders.lexists(stem + ".npz"):
         raise Damaged(stem + ".npz", "is missing", fix)
-    arrays = read_npz(stem + ".npz", fix)
+    arrays = read_npz(stem + ".npz", fix, npz_bytes(cfg, len(saved["keys"])))
     if "meta" not in arrays or json.loads(str(arrays["meta"])).get("keys") != saved["keys"]:
         raise Damaged(stem + ".npz", f"does not belong to {os.path.basename(stem)}.json (other keys)", fix)
     if stem.endswith("_mqd"):
@@ -153,8 +185,7 @@ def scan(out: str, task: str = "*") -> tuple[list[tuple[str, dict[str, Any]]], d
     of the damaged ones (a file unreadable, missing, altered, or without checksum). Reads and verifies every file
     of them: scan once, and pass the batches on (`conflicts`, `is_done`)."""
     found, damaged = [], {}
-    names = {os.path.basename(p) for pattern in _batch_patterns(task)
-             for p in glob.glob(os.path.join(glob.escape(out), pattern))}
+    names = {n for n in folders.listdir(out) for pattern in _batch_patterns(task) if fnmatch.fnmatchcase(n, pattern)}
     for stem in sorted({os.path.join(out, n.rsplit(".", 1)[0]) for n in names}, key=lambda s: s + ".json"):
         try:
             found.append((stem, _read_batch(out, stem)))
@@ -220,16 +251,18 @@ def describe(clash: dict[str, Clash]) -> str:
 
 
 def batch_files(stem: str) -> list[str]:
-    """The files of the batch `stem` that exist (JSON, npz, M-QD states)."""
-    return [stem + ext for ext in (".json", ".npz", ".msgpack") if os.path.exists(stem + ext)]
+    """The files of the batch `stem` that the folder's manifest lists as mqd-jax's (JSON, npz, M-QD states, the
+    running batch's checkpoint): never a user's file of such a name."""
+    ours = set(folders.written(os.path.dirname(stem) or "."))
+    return [stem + ext for ext in (".json", ".npz", ".msgpack", PART) if os.path.basename(stem + ext) in ours]
 
 
 def remove_batches(stems: list[str]) -> list[str]:
-    """Removes these batches (JSON, npz, M-QD states); returns the files removed. Adaptation results of removed
-    M-QD runs turn stale."""
+    """Removes these batches (the files `batch_files` lists); returns the files removed. Adaptation results of
+    removed M-QD runs turn stale."""
     removed = [p for stem in stems for p in batch_files(stem)]
     for path in removed:
-        os.remove(path)
+        folders.remove(path)
     return removed
 
 
@@ -262,7 +295,7 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
     clash = conflicts(scan(out, cfg.task_name)[0], [(cfg, keys)])
     if clash:
         raise ValueError(f"{out!r} refused: {describe(clash)}")
-    os.makedirs(out, exist_ok=True)
+    folders.make_folder(out)
     remove_derived(out)
     path = stem(out, cfg)
     meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "implementation": implementation(cfg),
@@ -275,6 +308,7 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
         checkpoint.save(path + ".msgpack", states, metrics, cfg, keys)
     # The JSON last: a batch without it is not complete (`scan` reports it damaged, and a sweep runs it again).
     write_json(path + ".json", {**meta, "wall_s": wall_s, "machine": machine(), "metrics": metrics})
+    folders.remove_written(out, [glob.escape(os.path.basename(path) + PART)])  # the batch is whole: its checkpoint goes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -331,7 +365,7 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
             raise ValueError(f"{out!r} mixes runs that cannot be compared: beside {os.path.basename(stem)}, "
                              f"{describe(clash)}; `mqd sweep` with --rerun-stale (another implementation) or "
                              "--overwrite (another config) in this folder repairs it")
-        rep = read_npz(stem + ".npz", repair(out, stem))
+        rep = read_npz(stem + ".npz", repair(out, stem), npz_bytes(cfg, len(saved["keys"])))
         metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
         found.setdefault(cfg.task_name, {})[cfg.algorithm] = Runs(
             cfg, np.asarray(saved["keys"], np.uint32), saved["wall_s"], saved["machine"], metrics, rep["count"],
@@ -345,7 +379,7 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
 def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     """The config, seed keys [S, 2] and final M-QD states (leading axis S) of `task` in `out`."""
     stem = _stem(out, task, "mqd")
-    if not os.path.exists(stem + ".json"):
+    if not folders.lexists(stem + ".json"):
         raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task} --out {out}` with "
                          "M-QD first")
     saved = _read_batch(out, stem)
@@ -356,14 +390,13 @@ def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
 
 def source(out: str, task: str) -> str:
     """The SHA-256 of `task`'s final M-QD states in `out`: what an adaptation result was computed from."""
-    with open(_stem(out, task, "mqd") + ".msgpack", "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()
+    return hashlib.sha256(folders.read_bytes(_stem(out, task, "mqd") + ".msgpack")).hexdigest()
 
 
 def read_adaptation(out: str) -> dict[str, Any]:
     """The contents of `out`'s adaptation.json ({} if none); raises `Damaged` for a damaged one."""
     path = os.path.join(out, ADAPTATION)
-    return read_json(path, f"`mqd adapt {out}` (every task) writes it anew") if os.path.exists(path) else {}
+    return read_json(path, f"`mqd adapt {out}` (every task) writes it anew") if folders.lexists(path) else {}
 
 
 def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
@@ -374,7 +407,7 @@ def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
     """
     current, stale = {}, []
     for task, entry in read_adaptation(out).items():
-        fresh = (isinstance(entry, dict) and os.path.exists(_stem(out, task, "mqd") + ".msgpack")
+        fresh = (isinstance(entry, dict) and folders.is_file(_stem(out, task, "mqd") + ".msgpack")
                  and entry.get("source") == source(out, task))
         if fresh:
             current[task] = entry["methods"]

@@ -107,6 +107,8 @@ def run_batch(
     chunk: int | None = None,
     on_chunk: Callable[[int, Metrics], None] | None = None,
     on_compiled: Callable[[], None] | None = None,
+    start: tuple[State, Metrics] | None = None,
+    on_state: Callable[[State, Metrics], None] | None = None,
 ) -> tuple[State, Metrics]:
     """R runs of `cfg`, vmapped and sharded over the devices.
 
@@ -120,6 +122,13 @@ def run_batch(
         metrics, each [R, chunk]).
       on_compiled: called once the chunk's program is compiled (it is compiled
         ahead of the first chunk, once for every chunk).
+      start: (states [R], metrics [R, done]) of these runs after `done`
+        generations, as `on_state` gave them: the batch continues from there
+        and, with the same chunk, ends bit for bit as it would have without the
+        stop (`mqd sweep` resumes an interrupted batch so).
+      on_state: called after each chunk, before `on_chunk`, with the states
+        (numpy, leading [R]) and every metric so far ([R, done]): what a
+        checkpoint of the batch holds.
 
     Returns:
       The final states (every array with a leading [R] axis, on the devices)
@@ -149,16 +158,22 @@ def run_batch(
     padded = -(-runs // len(devices)) * len(devices)
     pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - runs, 0)])  # noqa: E731
     sharding = NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
-    states = _init(_shard(pad(keys), sharding), cfg)
+    if start is None:
+        states, parts = _init(_shard(pad(keys), sharding), cfg), []
+    else:
+        states = jax.tree.map(lambda x: _shard(pad(np.asarray(x)), sharding), start[0])
+        parts = [dict(start[1])] if start[1] else []
     params = jax.tree.map(lambda x: _shard(pad(np.asarray(x, np.float32)), sharding), params)
     step = _chunk.lower(states, params, jnp.int32(chunk), cfg, chunk).compile()
     if on_compiled is not None:
         on_compiled()
-    parts: list[Metrics] = []
-    while (done := sum(len(p["coverage"][0]) for p in parts)) < cfg.max_generations:
+    while (done := sum(p["coverage"].shape[1] for p in parts)) < cfg.max_generations:
         todo = min(chunk, cfg.max_generations - done)
         states, metrics = step(states, params, jnp.int32(todo))
         parts.append({k: _gather(v)[:runs, :todo] for k, v in metrics.items()})
+        if on_state is not None:
+            on_state(jax.tree.map(lambda x: _gather(x)[:runs], states),
+                     {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[-1]})
         if on_chunk is not None:
             on_chunk(done + todo, parts[-1])
     states = jax.tree.map(lambda x: x[:runs], states)
