@@ -15,6 +15,8 @@ import json
 import os
 import re
 import shutil
+import signal
+import stat
 import struct
 import subprocess
 import sys
@@ -493,7 +495,10 @@ def test_a_task_whose_evaluate_fails_during_the_run_is_one_line(tmp_path, capsys
             return b, q + jax.pure_callback(broken, jax.ShapeDtypeStruct(q.shape, q.dtype), actions), v
 
     registered("broken", lambda: Broken((-3.14, -3.14), (3.14, 3.14), (0.0, 0.0), (1.0, 1.0)))
-    one_line_error(capsys, ["run", "--task", "broken", *RUN_FLAGS, "--out", str(tmp_path)], "MQD_TRACEBACK=1")
+    # One line (JAX's own traceback of the callback held back) that names the task and the cause.
+    err = one_line_error(capsys, ["run", "--task", "broken", *RUN_FLAGS, "--out", str(tmp_path)], "MQD_TRACEBACK=1")
+    assert "the task 'broken' failed during the run: its host callback (jax.pure_callback) raised RuntimeError: " \
+           "the robot's cable came loose" in err
 
 
 @pytest.mark.parametrize(("flags", "match"), [
@@ -590,3 +595,124 @@ def test_ci_installs_what_the_readme_installs():
     extras = lambda text: {e for group in re.findall(r'pip install (?:-q )?-e "\.\[([^\]]+)\]"', text)  # noqa: E731
                            for e in group.split(",")}
     assert extras(readme) >= {"plot", "dev"} and extras(ci) == extras(readme)
+
+
+# [trust-4] (issue 64) 4. A FIFO named like a result is refused at once, naming it: no command hangs, no lock is left.
+
+@contextlib.contextmanager
+def within(seconds):
+    """Fails (TimeoutError) a block that runs longer than `seconds`: a command that would hang on a FIFO."""
+    def expire(*_):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.parametrize(("kind", "name", "argv"), [
+    ("run", "metrics.json", ["render", "{folder}"]),
+    ("run", "repertoire.npz", ["render", "{folder}"]),
+    ("run", "checkpoint.msgpack", ["run", "--resume", "--out", "{folder}"]),
+    ("sweep", "obstacle2d_qd.json", ["plot", "{folder}"]),
+    ("sweep", "obstacle2d_mqd.msgpack", ["adapt", "{folder}", "--goals", "3"]),
+    ("fresh", "metrics.json", ["run", *RUN_FLAGS, "--out", "{folder}"]),
+    ("fresh", folders.MANIFEST, ["run", *RUN_FLAGS, "--out", "{folder}"]),
+], ids=lambda x: x if isinstance(x, str) else None)
+def test_a_fifo_named_like_a_result_is_refused_at_once_naming_it(made, tmp_path, capsys, kind, name, argv):
+    folder = tmp_path / kind
+    if kind == "fresh":
+        folder.mkdir()
+    else:
+        shutil.copytree(made / kind, folder)
+        (folder / name).unlink()
+    os.mkfifo(folder / name)
+    with within(60):
+        err = one_line_error(capsys, [a.format(folder=folder) for a in argv],
+                             f"{name} (a FIFO)" if kind == "fresh" and name != folders.MANIFEST
+                             else repr(str(folder / name)))
+    assert "a FIFO" in err
+    assert stat.S_ISFIFO(os.lstat(folder / name).st_mode) and not (folder / folders.LOCK).exists()
+
+
+# [trust-4] 5. Reads are bounded by what the config implies: nothing past it is inflated or allocated.
+
+def _npz(members):
+    """An npz (zip) file of raw members {name: bytes}, deflated."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, data in members.items():
+            z.writestr(name, data)
+    return buffer.getvalue()
+
+
+def _npy_header(shape, dtype="<f4"):
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, {"descr": dtype, "fortran_order": False, "shape": shape})
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("bomb", ["inflates", "declares"])
+def test_an_npz_larger_than_its_config_implies_is_refused_before_it_is_read(made, tmp_path, capsys, bomb):
+    import tracemalloc
+
+    folder = tmp_path / "run"
+    shutil.copytree(made / "run", folder)
+    if bomb == "inflates":  # 64 MiB of zeros in about 64 KB: an honest header, more than 64 skills can hold
+        data = _npy_header((2**24,)) + bytes(2**26)
+    else:  # a header that declares 2^40 floats (4 TiB) over a few bytes
+        data = _npy_header((2**40,)) + bytes(16)
+    path = folder / "repertoire.npz"
+    path.write_bytes(_npz({"actions.npy": data, "behaviors.npy": _npy_header((1, 2)) + bytes(8)}))
+    assert path.stat().st_size < 2**17
+    tracemalloc.start()
+    try:
+        err = one_line_error(capsys, ["render", str(folder)], repr(str(path)))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert "its config implies" in err and "MemoryError" not in err
+    assert peak < 2**25  # never inflated (64 MiB) nor allocated (4 TiB)
+
+
+# [trust-4] 6. A checkpoint that parses but is wrong (fields missing, of another type, re-sealed with a fresh
+# checksum) is refused naming the file and the field; the stop says what is kept.
+
+def _resealed(path, edit):
+    """Edits the body of the checkpoint `path` and seals it again with a fresh SHA-256, as a forger would."""
+    from flax import serialization
+
+    payload = serialization.msgpack_restore(path.read_bytes())
+    body = serialization.msgpack_restore(payload["body"])
+    edit(body)
+    payload["body"] = serialization.msgpack_serialize(body)
+    payload["sha256"] = hashlib.sha256(payload["body"]).hexdigest()
+    path.write_bytes(serialization.msgpack_serialize(payload))
+
+
+def _generation(body, value):
+    body["state"]["generation"] = np.int32(value)
+
+
+@pytest.mark.parametrize(("edit", "match"), [
+    (lambda b: b.pop("config"), "it lacks the field 'config'"),
+    (lambda b: b.update(metrics=[1, 2]), "its field 'metrics' is a list, not a dict"),
+    (lambda b: _generation(b, -6), "it is at generation -6, which is negative"),
+    (lambda b: b["metrics"].update({k: np.concatenate([v, v]) for k, v in b["metrics"].items()}),
+     "is [4], where its 2 generations done make [2]"),
+    (lambda b: (b["metrics"].update({k: np.concatenate([v, v]) for k, v in b["metrics"].items()}),
+                _generation(b, 4)), "it is at generation 4, outside 0 to 2"),
+], ids=["no-config", "metrics-a-list", "generation-negative", "metrics-repeated", "past-the-end"])
+def test_a_checkpoint_that_parses_but_is_wrong_is_refused_naming_the_field(made, tmp_path, capsys, edit, match):
+    folder = tmp_path / "run"
+    shutil.copytree(made / "run", folder)
+    path = folder / "checkpoint.msgpack"
+    _resealed(path, edit)
+    before = sha(path)
+    err = one_line_error(capsys, ["run", *RUN_FLAGS, "--resume", "--out", str(folder)], repr(str(path)))
+    assert match in err and "KeyError" not in err and "nothing was saved" not in err
+    assert sha(path) == before

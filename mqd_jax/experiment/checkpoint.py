@@ -225,12 +225,15 @@ def _check_fields(path: str, payload: dict[str, Any]) -> None:
     if key.dtype != np.uint32 or key.ndim not in (1, 2) or key.shape[-1] != 2:
         raise Refused(path, f"its key is {key.dtype}{list(key.shape)}, not uint32 [2] or [S, 2]")
     generation = payload["state"].get("generation")
+    generation = np.asarray(generation) if isinstance(generation, (np.ndarray, np.generic)) else None
     runs = () if key.ndim == 1 else key.shape[:1]
-    if not (isinstance(generation, np.ndarray) and generation.dtype.kind in "iu" and generation.shape == runs):
+    if not (generation is not None and generation.dtype.kind in "iu" and generation.shape == runs):
         raise Refused(path, f"its state's generation is not an integer of shape {list(runs)}")
     if generation.size and (generation.min() != generation.max()):
         raise Refused(path, "its runs are at different generations")
     done = int(generation.max()) if generation.size else 0
+    if done < 0:
+        raise Refused(path, f"it is at generation {done}, which is negative")
     for name, value in payload["metrics"].items():
         if not (isinstance(value, np.ndarray) and value.shape == (*runs, done)):
             shape = list(np.shape(value)) if isinstance(value, np.ndarray) else type(value).__name__

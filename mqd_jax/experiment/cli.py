@@ -346,7 +346,7 @@ def _run(args: argparse.Namespace) -> None:
     args.interrupted = interrupted
     with folders.lock(args.out) as leftovers:
         _say_removed(leftovers, "left by an interrupted writer")
-        if args.resume and not folders.is_file(path):
+        if args.resume and not folders.lexists(path):
             raise ValueError(f"--resume: {args.out!r} holds no checkpoint; run without --resume to start")
         if args.resume:
             cfg, seed = _resumed(args, path)

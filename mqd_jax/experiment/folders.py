@@ -322,9 +322,9 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, budget: int) -> np.
         if dtype.hasobject:
             raise ValueError(f"its member {info.filename!r} holds Python objects (never read)")
         nbytes = math.prod(shape) * dtype.itemsize
-        if nbytes > budget:
+        if nbytes > min(budget, info.file_size):
             raise ValueError(f"its member {info.filename!r} declares shape {shape} of {dtype} ({nbytes} bytes), more "
-                             f"than the {budget} its config implies")
+                             f"than its config implies ({budget}) or its zip entry holds ({info.file_size})")
         data = member.read(nbytes)
         if len(data) != nbytes or member.read(1):
             raise ValueError(f"its member {info.filename!r} does not hold the {nbytes} bytes its header declares")
@@ -527,10 +527,14 @@ def _plain_name(name: Any) -> bool:
 
 def _manifest(folder: str) -> dict[str, Any] | None:
     """The manifest of `folder` (None if it has none); raises `Damaged` for a damaged one, and for one that names
-    anything but plain file names of the folder's regular files (a path, `..`, a folder, a link or a FIFO)."""
+    anything but plain file names of the folder's regular files (a path, `..`, a folder, a link or a FIFO);
+    `NotAFile` where the manifest itself is not a regular file."""
     path = os.path.join(folder, MANIFEST)
-    if not lexists(path):
+    found = _lstat(path)
+    if found is None:
         return None
+    if not stat.S_ISREG(found.st_mode):
+        raise NotAFile(path, _what(found.st_mode))
     repair = ("pass --overwrite to replace the folder's results (only files mqd-jax can prove it wrote are "
               "removed), or write to another folder")
     saved = read_json(path, repair)
@@ -702,7 +706,8 @@ def claim(folder: str, kind: str, identity: Mapping[str, Any], patterns: Sequenc
         ours = written(folder, saved)
     else:
         ours = [n for n in named if carries_provenance(os.path.join(folder, n))]
-    foreign = [n for n in named if n not in ours and n != MANIFEST]
+    foreign = [n if is_file(os.path.join(folder, n)) else f"{n} ({_what(_lstat(os.path.join(folder, n)).st_mode)})"
+               for n in named if n not in ours and n != MANIFEST]
     if foreign:
         raise ValueError(f"{folder!r} refused: {', '.join(foreign)} {'is' if len(foreign) == 1 else 'are'} not "
                          "written by mqd-jax here (not in its manifest mqd.json, and not provably its results) but "
