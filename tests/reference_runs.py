@@ -6,8 +6,11 @@
 with the saved ones. `reference_runs.npz` was written from the code of mqd-jax 0.9.0 on an AMD EPYC without
 AVX-512; `reference_runs_avx512.npz` from the code of 0.12.0 (git 94c1f0c; "+dirty": this file's output path and
 CPU label only) on an AMD EPYC with AVX-512, whose vector units round C MuJoCo's physics and M-QD's training
-otherwise. Each file saves its git revision and the CPU (`cpu_model`) beside the arrays; the test compares with
-the file of this machine's CPU: a change that alters a run's numbers shows here first.
+otherwise; `reference_runs_vp2intersect.npz` from the code of 0.16.0 (git f8099be; "+dirty": the [trust-4]
+tests copied into that checkout only) on an AMD EPYC whose AVX-512 has VP2INTERSECT (a later generation, reported
+under the same model name, whose PushCube runs differ from the previous one's in the fifth digit). Each file saves
+its git revision and the CPU (`cpu_model`) beside the arrays; the test compares with the file of this machine's
+CPU: a change that alters a run's numbers shows here first.
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ from mqd_jax.core import registry
 from mqd_jax.experiment.provenance import provenance
 
 PATH = pathlib.Path(__file__).resolve().parent / "data" / "reference_runs.npz"
-PATHS = (PATH, PATH.with_name("reference_runs_avx512.npz"))  # the saved runs, of the CPUs they were made on
+# The saved runs, of the CPUs they were made on.
+PATHS = (PATH, PATH.with_name("reference_runs_avx512.npz"), PATH.with_name("reference_runs_vp2intersect.npz"))
 ALGORITHMS = ("qd", "random", "mqd", "mqd-paper")
 TASKS = ("obstacle2d", "push_cube")
 
@@ -45,14 +49,15 @@ def config(task: str, algorithm: str) -> Config:
 
 
 def cpu_model() -> str:
-    """The CPU's model name and whether it has AVX-512 (MuJoCo's physics and M-QD's model may round otherwise on
-    another one: one name covers processors with and without it)."""
+    """The CPU's model name, whether it has AVX-512 and whether that has VP2INTERSECT (MuJoCo's physics and M-QD's
+    model may round otherwise on another one: one name, "AMD EPYC", covers processors of several generations)."""
     try:
         with open("/proc/cpuinfo") as f:
             lines = f.read().splitlines()
         name = next(line.split(":", 1)[1].strip() for line in lines if line.startswith("model name"))
         flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
-        return name + (" with AVX-512" if "avx512f" in flags else "")
+        return name + (" with AVX-512" if "avx512f" in flags else "") + (
+            " and VP2INTERSECT" if "avx512_vp2intersect" in flags else "")
     except (OSError, StopIteration):
         return platform.processor() or platform.machine()
 

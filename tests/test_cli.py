@@ -48,6 +48,10 @@ def test_mqd_run_resumes_its_checkpoint_and_refuses_another_config(tmp_path, cap
     assert json.loads((tmp_path / "metrics.json").read_text())["metrics"] == first["metrics"]
     with pytest.raises(SystemExit):
         cli.main([*argv[:-2], "--t-dist", "0.01", "--out", str(tmp_path), "--resume"])
+    err = capsys.readouterr().err
+    assert "its own config and seed, which the flags given contradict (t_dist: saved 0.02, now 0.01)" in err
+    with pytest.raises(SystemExit):
+        cli.main([*argv[:-2], "--t-dist", "0.01", "--out", str(tmp_path)])
     assert "another run (" in (err := capsys.readouterr().err) and "t_dist: saved 0.02, now 0.01" in err
 
 

@@ -87,8 +87,9 @@ def test_overwrite_never_removes_what_mqd_jax_cannot_prove_it_wrote(tmp_path, ca
     (tmp_path / "mine.npz").write_bytes(b"mine")
     (out / "repertoire.npz").symlink_to(tmp_path / "mine.npz")
     (out / "checkpoint.msgpack").mkdir()
-    err = refused(["run", *TINY, "--overwrite", "--out", str(out)], "checkpoint.msgpack, repertoire.npz, run.png are "
-                                                                     "not written by mqd-jax here")
+    err = refused(["run", *TINY, "--overwrite", "--out", str(out)], "checkpoint.msgpack (a folder), repertoire.npz (a "
+                                                                     "symbolic link), run.png are not written by "
+                                                                     "mqd-jax here")
     assert "never removes them" in err
     assert (out / "run.png").read_bytes() == picture and (out / "repertoire.npz").is_symlink()
     assert (out / "checkpoint.msgpack").is_dir() and (tmp_path / "mine.npz").read_bytes() == b"mine"

@@ -660,7 +660,7 @@ def _render(args: argparse.Namespace) -> None:
     print(f"skill {index}: behavior {np.round(behaviors[index], 3).tolist()}, action "
           f"{np.round(actions[index], 3).tolist()}")
     with folders.lock(target, create=False) if ours else contextlib.nullcontext():
-        if ours and os.path.lexists(out) and os.path.basename(out) not in folders.written(target):
+        if ours and folders.lexists(out) and os.path.basename(out) not in folders.written(target):
             raise ValueError(f"--out {out!r} is not written by mqd-jax there (not in its manifest), so it is not "
                              "replaced: remove it, or give another --out")
         try:
