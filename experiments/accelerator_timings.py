@@ -6,8 +6,9 @@
 Three tables, each row written to `--out` as soon as it is measured:
 
 1. Population (2D Obstacle, Table II's 2D settings, capacity max(4096, population)): ms per generation of
-   each `--algorithms` preset, from a state grown `--grow` generations (a chunk of `--generations`
-   generations, one compiled `lax.scan`, median of `--repeats` calls after compiling), its ratio to the
+   each `--algorithms` preset from a state grown `--grow` generations (a chunk of `--generations`
+   generations, one compiled `lax.scan`, median of `--repeats` calls after compiling) and in a whole run of
+   `--whole` generations from an empty repertoire (what a user pays), each with its ratio to the
    smallest population's, the mean rounds of the parallel insertion, and the time of each named stage
    jitted alone on that state (`ask`: variation and the model's acquisition; `rollouts`; `insert`: the
    insertion rule, neighbour lists and novelty; `archive + coverage`; `update`: the emitter's, M-QD's
@@ -31,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import report
-from population_scaling import grown
+from population_scaling import grown, whole_run_ms
 
 from mqd_jax import Config
 from mqd_jax.core import repertoire
@@ -72,7 +73,8 @@ def population_row(algorithm: str, population: int, args: argparse.Namespace) ->
     task = get_task(cfg)
     _, metrics = chunk(state, cfg, params, args.generations)
     found = {"generation": report.median_ms(lambda: chunk(state, cfg, params, args.generations), args.repeats)
-             / args.generations, "rounds": float(np.mean(np.asarray(metrics["insertion_rounds"])))}
+             / args.generations, "rounds": float(np.mean(np.asarray(metrics["insertion_rounds"]))),
+             "whole": whole_run_ms(cfg, params, chunk, args.whole, args.repeats)}
     candidates, b, q, usable, kept, rep, ins, evaluated = generation_parts(state, cfg, params)
     stages = {
         "ask": jax.jit(lambda s: ask(s, cfg, params)),
@@ -108,6 +110,7 @@ def main() -> None:
     parser.add_argument("--grow", type=int, default=20, help="generations run before timing")
     parser.add_argument("--generations", type=int, default=5, help="generations of the timed chunk")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--whole", type=int, default=50, help="generations of a whole run from empty (0: none)")
     parser.add_argument("--seeds", type=int, default=25, help="the sweep's seeds (0: no sweep)")
     parser.add_argument("--robot-task", default="push_cube")
     parser.add_argument("--robot-batches", type=int, nargs="*", default=[1024, 4096, 16384])
@@ -119,16 +122,20 @@ def main() -> None:
     if args.algorithms:
         lines += [f"2D Obstacle, Table II's 2D settings (capacity max(4096, population)); a chunk of "
                   f"{args.generations} generations after {args.grow}, median of {args.repeats}, compile excluded; "
-                  "stages jitted alone, ms.", "",
-                  "| algorithm | population | ms / generation | vs smallest population | insertion rounds | ask | "
-                  "rollouts | insert | archive + coverage | update |", "|---|---|---|---|---|---|---|---|---|---|"]
+                  f"stages jitted alone, ms; a whole run of {args.whole} generations from an empty repertoire (what a "
+                  "user pays), ms per generation.", "",
+                  "| algorithm | population | ms / generation | vs smallest population | whole run: ms / generation "
+                  "| vs smallest population | insertion rounds | ask | rollouts | insert | archive + coverage "
+                  "| update |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for algorithm in args.algorithms:
         first = None
         for population in args.populations:
             row = population_row(algorithm, population, args)
-            first = first or row["generation"]
-            lines.append(f"| {algorithm} | {population} | {row['generation']:.2f} | {row['generation'] / first:.1f} | "
-                         f"{row['rounds']:.1f} | " + " | ".join(
+            first = first or row
+            lines.append(f"| {algorithm} | {population} | {row['generation']:.2f} | "
+                         f"{row['generation'] / first['generation']:.1f} | {row['whole']:.2f} | "
+                         f"{row['whole'] / first['whole']:.1f} | {row['rounds']:.1f} | " + " | ".join(
                              f"{row[s]:.2f}" for s in ("ask", "rollouts", "insert", "archive + coverage", "update"))
                          + " |")
             report.write(lines, args.out)

@@ -15,7 +15,16 @@ from mqd_jax.core import algorithms
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import AddStatus, Repertoire
-from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, greedy_diverse, parent_factor
+from mqd_jax.emitters.acquisition import (
+    Budgeted,
+    Diverse,
+    Judged,
+    Threshold,
+    greedy_diverse,
+    parent_factor,
+    pool_neighbours,
+    rounds_diverse,
+)
 from mqd_jax.emitters.model_emitter import ModelEmitterState, _share, opener_auc
 from mqd_jax.emitters.pursuit import Fallback, FallbackState
 from mqd_jax.surrogate import model
@@ -323,6 +332,73 @@ def test_diverse_selects_num_distinct_rows():
     assert len(set(np.asarray(rows).tolist())) == 10 and bool(rollout.all()) and int(discarded) == 30
 
 
+def opened(b, rows, skills, t_dist):
+    """How many of the rows, in order, open a niche: their behavior farther than t_dist from every skill and every
+    row before them (brute force)."""
+    held, count = list(skills), 0
+    for x in np.asarray(b)[np.asarray(rows)]:
+        count += not held or np.min(np.linalg.norm(np.asarray(held) - x, axis=1)) > t_dist
+        held.append(x)
+    return count
+
+
+@pytest.mark.parametrize("dim", [1, 2, 5])
+def test_pool_neighbours_find_every_pair_within_t_dist(dim):
+    b = jax.random.uniform(jax.random.PRNGKey(dim), (400, dim)) * (4.0 if dim == 1 else 1.0)  # <= 32 per run
+    ok = jnp.arange(400) != 7  # one point left out: in no one's list, with no list
+    others, seen = map(np.asarray, pool_neighbours(b, ok, jnp.float32(0.05)))
+    d = np.linalg.norm(np.asarray(b)[:, None] - np.asarray(b)[None], axis=-1)
+    found = np.zeros_like(d, bool)
+    for i in range(400):
+        found[i, others[i][seen[i]]] = True
+    within = (d <= 0.05) & ~np.eye(400, dtype=bool) & np.asarray(ok)[:, None] & np.asarray(ok)[None]
+    assert not (within & ~found).any()  # no run holds more than WINDOW here: exact
+    assert not found[7].any() and not found[:, 7].any() and not found[np.eye(400, dtype=bool)].any()
+
+
+def test_rounds_take_what_greedy_takes_where_no_two_candidates_interact():
+    # 60 candidates on a grid 0.1 apart, each 0.025-0.045 from a skill of its own (t_dist 0.02): each opens a niche,
+    # none is within t_dist of another, and no choice becomes another's nearest imagined skill, so both choose the
+    # best 20 by value, in the same order.
+    b = np.stack(np.meshgrid(np.arange(10) / 10, np.arange(6) / 10), -1).reshape(-1, 2)
+    gap = np.linspace(0.025, 0.045, 60)[np.random.default_rng(0).permutation(60)]
+    rep = repertoire_of(b + np.stack([gap, np.zeros(60)], -1), np.full(60, 0.5), capacity=64)
+    pool = judged(b, jnp.full(60, 0.5), rep)
+    wanted, t = jnp.ones(60, bool), jnp.float32(0.02)
+    greedy = greedy_diverse(pool, wanted, t, 1.0, 20)
+    np.testing.assert_array_equal(rounds_diverse(pool, wanted, t, 1.0, 20, 4), greedy)
+    np.testing.assert_array_equal(np.sort(np.asarray(greedy)), np.sort(np.argsort(-gap)[:20]))
+
+
+@pytest.mark.parametrize("crowd", [1.0, 0.3])
+def test_rounds_open_nearly_as_many_niches_as_the_greedy_oracle(crowd):
+    """The oracle of what diverse means: the greedy choice one at a time. The rounds' choice opens at least 95% of
+    the niches it opens (brute force), every row distinct, from pools spread out and crowded."""
+    key = jax.random.split(jax.random.PRNGKey(0), 3)
+    skills = np.asarray(jax.random.uniform(key[0], (40, 2)))
+    b = np.asarray(jax.random.uniform(key[1], (2000, 2))) * crowd
+    rep = repertoire_of(skills, np.full(40, 0.5), capacity=64)
+    pool = judged(b, jax.random.uniform(key[2], (2000,)), rep)
+    wanted, t = jnp.ones(2000, bool), jnp.float32(0.02)
+    greedy = greedy_diverse(pool, wanted, t, 1.0, 250, quality_share=0.1)
+    rounds = rounds_diverse(pool, wanted, t, 1.0, 250, 8, quality_share=0.1)
+    assert len(set(np.asarray(rounds).tolist())) == 250 and int(rounds.min()) >= 0 and int(rounds.max()) < 2000
+    assert opened(b, rounds, skills, 0.02) >= 0.95 * opened(b, greedy, skills, 0.02)
+
+
+def test_diverse_chooses_in_rounds_from_rounds_from_rows_and_one_at_a_time_below(monkeypatch):
+    from mqd_jax.emitters import acquisition
+
+    rep = repertoire_of([[0.5, 0.5]], [0.5])
+    pool = judged(jax.random.uniform(jax.random.PRNGKey(0), (40, 2)), jax.random.uniform(jax.random.PRNGKey(1), (40,)),
+                  rep)
+    args = (jax.random.PRNGKey(0), (), pool, rep, jnp.ones(40, bool), Config().params(), 10)
+    greedy = Diverse(4, selection="greedy").select(*args)[0]
+    np.testing.assert_array_equal(Diverse(4).select(*args)[0], greedy)  # "auto" below ROUNDS_FROM: bit for bit
+    monkeypatch.setattr(acquisition, "ROUNDS_FROM", 10)
+    np.testing.assert_array_equal(Diverse(4).select(*args)[0], Diverse(4, selection="rounds").select(*args)[0])
+
+
 def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qualities():
     # Skills of quality 0.2 and 0.6 (standard deviation 0.2; an empty slot of quality 5 is not counted). Candidates
     # 0 and 1 sit on the first skill, predicted 0.05 and 0.3 better; 2 opens a niche far away.
@@ -346,7 +422,8 @@ def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qual
                                        (dict(quality_share=1.5), "quality_share"),
                                        (dict(quality_share=float("nan")), "quality_share"),
                                        (dict(quality_margin=-0.1), "quality_margin"),
-                                       (dict(quality_margin=float("inf")), "quality_margin")])
+                                       (dict(quality_margin=float("inf")), "quality_margin"),
+                                       (dict(selection="fast"), "selection"), (dict(rounds=0), "rounds")])
 def test_diverse_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Diverse.{field}="):
         Diverse(**kw)

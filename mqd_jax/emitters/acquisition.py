@@ -238,6 +238,98 @@ def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
     return jnp.where(jnp.isnan(novelty) | ~(mean > 0), 1.0, novelty / mean) ** weight
 
 
+SELECTIONS = ("auto", "greedy", "rounds")  # Diverse's ways to choose
+# "auto" chooses in rounds from this many rows on (a pool of 8 x that), one at a time below: on a 2-core CPU the
+# rounds cost 6 ms at 100 rows against the greedy steps' 0.5, and 40 against 47 ms at 1,024, 80 against 800 at
+# 4,096 (experiments/selection_timing.py).
+ROUNDS_FROM = 1024
+# Pool neighbours `pool_neighbours` reads per row of grid cells (three rows in two dimensions or more, one row of
+# three cells in one): what a candidate of `rounds_diverse` sees of the pool, whatever the pool's size.
+WINDOW = 32
+
+
+def _crowding(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
+    """[d] per behavior axis, the most of points [P, d] (those ok [P]) that a band 2 t_dist wide holds, estimated
+    without sorting (P bins at least t_dist wide, the most any 3 adjacent hold): low is where bands are short."""
+    pop, dim = points.shape
+    low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
+    spread = jnp.where(ok[:, None], points, -jnp.inf).max(axis=0) - low
+    bin_width = jnp.maximum(t_dist, spread / pop)
+    bins = jnp.clip(jnp.where(ok[:, None], (points - low) / bin_width, 0.0), 0, pop - 1).astype(jnp.int32)
+    counts = jnp.zeros((dim, pop + 2), jnp.int32).at[jnp.arange(dim), bins + 1].add(ok[:, None].astype(jnp.int32))
+    return (counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]).max(axis=1)
+
+
+def pool_neighbours(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Each point's neighbours among points [N, d] (those ok [N]) that may lie within `t_dist` of it: ids [N, K]
+    and whether each is one (bool [N, K]; never the point itself), K = 3 x WINDOW, found without an [N, N] matrix.
+
+    The points are binned in a grid of cells `t_dist` wide on their two least crowded axes (`_crowding`; one in
+    one dimension) and sorted by cell: every point within `t_dist` of a point lies in its cell or an adjacent one,
+    which are three runs of the sorted order (one in one dimension), and each run is read for WINDOW places. Exact
+    where no run holds more; otherwise the first WINDOW of each run (the rest unseen)."""
+    size, dim = points.shape
+    if dim == 1:
+        axes, rows = jnp.zeros(2, jnp.int32), (0,)
+    else:
+        axes, rows = jnp.argsort(_crowding(points, ok, t_dist), stable=True)[:2].astype(jnp.int32), (-1, 0, 1)
+    span = 2**15  # cells per axis at most (ids stay int32); far points share the border cells: read, not lost
+    low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
+    cell = jnp.clip(jnp.floor((jnp.take(points, axes, axis=1) - low[axes]) / t_dist), 0, span - 3).astype(jnp.int32)
+    cell = jnp.where(ok[:, None], cell + 1, 0)
+    ids = jnp.where(ok, cell[:, 1] * span + cell[:, 0], jnp.iinfo(jnp.int32).max) if dim > 1 else \
+        jnp.where(ok, cell[:, 0], jnp.iinfo(jnp.int32).max)
+    order = jnp.argsort(ids, stable=True)
+    ordered = ids[order]
+    found, there = [], []
+    width = 3 * WINDOW // len(rows)
+    for row in rows:
+        centre = ids + row * span if dim > 1 else ids
+        lo = jnp.searchsorted(ordered, centre - 1, "left")
+        hi = jnp.searchsorted(ordered, centre + 1, "right")
+        places = lo[:, None] + jnp.arange(width)
+        found.append(order[jnp.minimum(places, size - 1)])
+        there.append((places < hi[:, None]) & ok[:, None])
+    others, seen = jnp.concatenate(found, axis=1), jnp.concatenate(there, axis=1)
+    return others, seen & (others != jnp.arange(size)[:, None]) & ok[others]
+
+
+def _diverse_terms(judged: Judged, beta: float, neighbours: int, parent_weight: float
+                   ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
+    """What both diverse selections read of a judged pool: (finite [N], optimism beta x spread [N], near [N, M]
+    ascending, the parent factor [N] or 1, plausible [N]); ValueError where `neighbours` asks for more columns
+    than judged."""
+    columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
+    if neighbours > 1 and columns < neighbours:
+        raise ValueError(f"Diverse.neighbours={neighbours} needs the distances to that many nearest skills; "
+                         f"the model's judgement has {columns} (ModelEmitter.k)")
+    optimism = beta * judged.spread
+    finite = jnp.isfinite(judged.behaviors).all(axis=1) & jnp.isfinite(judged.qualities) & jnp.isfinite(optimism)
+    near = judged.distance[:, None] if neighbours == 1 else judged.neighbours[:, :neighbours]
+    return finite, optimism, near, parent_factor(judged, parent_weight), judged.plausible
+
+
+def _tiers(near: jax.Array, nearest_quality: jax.Array, free: jax.Array, preferred_is_improver: jax.Array | bool,
+           q: jax.Array, finite: jax.Array, optimism: jax.Array, factor: jax.Array | float, wanted: jax.Array,
+           plausible: jax.Array, t_dist: jax.Array, quality_margin: jax.Array | float
+           ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(tier [N] (-1 for a candidate taken), value [N], opens [N]) of a diverse selection's step: first the wanted,
+    then the preferred (openers, or on a quality step the improvers), then the plausible; within a tier by value
+    (an opener's optimistic mean distance to its nearest imagined skills times the parent factor, else the
+    predicted improvement over its nearest)."""
+    opens = finite & (near[:, 0] + optimism > t_dist)
+    improves = finite & ~opens & (q - nearest_quality > quality_margin)
+    known = jnp.isfinite(near)
+    count = known.sum(axis=1)
+    mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
+    preferred = jnp.where(preferred_is_improver, improves, opens)
+    value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, (mean + optimism) * factor, q - nearest_quality)),
+                      -jnp.inf)
+    tier = jnp.where(free, 4 * wanted.astype(jnp.int32) + 2 * preferred.astype(jnp.int32)
+                     + plausible.astype(jnp.int32), -1)
+    return tier, value, opens
+
+
 def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,
                    neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0,
                    quality_margin: float | jax.Array = 0.0) -> jax.Array:
@@ -264,31 +356,15 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     them, a rule that always finds enough predicted openers never spends a
     rollout on a better skill for a niche it holds.
     """
-    columns = 0 if judged.neighbours is None else judged.neighbours.shape[1]
-    if neighbours > 1 and columns < neighbours:
-        raise ValueError(f"Diverse.neighbours={neighbours} needs the distances to that many nearest skills; "
-                         f"the model's judgement has {columns} (ModelEmitter.k)")
     b, q = judged.behaviors, judged.qualities
-    optimism = beta * judged.spread
-    finite = jnp.isfinite(b).all(axis=1) & jnp.isfinite(q) & jnp.isfinite(optimism)
-    plausible = judged.plausible
-    near = judged.distance[:, None] if neighbours == 1 else judged.neighbours[:, :neighbours]  # [N, M] ascending
-    factor = parent_factor(judged, parent_weight)
+    finite, optimism, near, factor, plausible = _diverse_terms(judged, beta, neighbours, parent_weight)  # [N, M]
 
     def choose(carry: tuple[jax.Array, jax.Array, jax.Array],
                quality_step: jax.Array) -> tuple[tuple[jax.Array, ...], jax.Array]:
         near, nearest_quality, free = carry
-        opens = finite & (near[:, 0] + optimism > t_dist)
-        improves = finite & ~opens & (q - nearest_quality > quality_margin)
-        known = jnp.isfinite(near)
-        count = known.sum(axis=1)
-        mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
         # A quality step prefers the improvers (by their improvement, as non-openers are ranked anyway).
-        preferred = jnp.where(quality_step, improves, opens)
-        value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, (mean + optimism) * factor, q - nearest_quality)),
-                          -jnp.inf)
-        tier = jnp.where(free, 4 * wanted.astype(jnp.int32) + 2 * preferred.astype(jnp.int32)
-                         + plausible.astype(jnp.int32), -1)
+        tier, value, _ = _tiers(near, nearest_quality, free, quality_step, q, finite, optimism, factor, wanted,
+                                plausible, t_dist, quality_margin)
         best = tier == tier.max()
         pick = jnp.argmax(jnp.where(best, value, -jnp.inf))
         pick = jnp.where(best[pick], pick, jnp.argmax(best)).astype(jnp.int32)  # all of the tier at -inf: the first
@@ -309,6 +385,92 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     return rows
 
 
+def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int, rounds: int,
+                   neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0,
+                   quality_margin: float | jax.Array = 0.0) -> jax.Array:
+    """[num] pool rows chosen in `rounds` data-parallel rounds (non-maximum suppression), then filled by score; the
+    first chosen first. `greedy_diverse`'s choice made parallel in the pool: its order, tiers and values, not its
+    one-at-a-time steps.
+
+    Each round ranks the free candidates as a greedy step would (wanted, then predicted openers, then plausible,
+    then by value) and takes every candidate of the first tier left that ranks above each free candidate of its
+    conflicts (those whose predicted behavior lies within `t_dist` of its own), at most what is left of the
+    budget, best first:
+    the candidates taken in one round never conflict, as a greedy choice would not take the second of two
+    openers within `t_dist`. The wanted ones taken enter the imagined repertoire (their predicted behaviors),
+    so the next round judges the rest against them. Spatial work is bounded: each candidate reads only the
+    3 x `WINDOW` pool neighbours `pool_neighbours` finds once per generation in a grid of `t_dist` cells (its
+    conflicts and the imagined skills it sees among them: exact where no cell row holds more than `WINDOW`).
+    A round costs O(pool x WINDOW) (and a sort where more than the budget left win it); `rounds` rounds
+    replace `num` sequential steps. `quality_share` of the rows are the quality steps' (improvers
+    first, placed where `greedy_diverse` places its quality steps).
+    """
+    b, q = judged.behaviors, judged.qualities
+    size = b.shape[0]
+    finite, optimism, near, factor, plausible = _diverse_terms(judged, beta, neighbours, parent_weight)
+    others, seen = pool_neighbours(b, finite, t_dist)
+    gap = jnp.sqrt(sum((b[:, None, k] - b[others, k]) ** 2 for k in range(b.shape[1])))
+    conflict = seen & (gap <= t_dist)
+    wanted_seen = seen & wanted[others]
+    quality_count = round(quality_share * num)
+    openers = num - quality_count
+
+    def before(tier_a: jax.Array, value_a: jax.Array, a: jax.Array, tier_b: jax.Array, value_b: jax.Array,
+               b_: jax.Array) -> jax.Array:
+        """Whether candidate a ranks before candidate b (tier, then value, then the lower index): no sort."""
+        return (tier_a > tier_b) | ((tier_a == tier_b) & ((value_a > value_b) | ((value_a == value_b) & (a < b_))))
+
+    def one_round(carry: tuple[jax.Array, ...], round_: jax.Array) -> tuple[tuple[jax.Array, ...], None]:
+        near, nearest_quality, free, position, taken_in, taken_tier, taken_value = carry
+        tier, value, _ = _tiers(near, nearest_quality, free, False, q, finite, optimism, factor, wanted,
+                                plausible, t_dist, quality_margin)
+        mine = jnp.arange(size)[:, None]
+        beaten = conflict & free[others] & before(tier[others], value[others], others, tier[:, None],
+                                                  value[:, None], mine)
+        take = free & ~beaten.any(axis=1) & (tier == tier.max())  # as greedy steps, a tier after another
+
+        def best_of(take: jax.Array) -> jax.Array:  # more than the budget left: its best, by one sort
+            rank = jnp.argsort(jnp.lexsort((-value, -tier, ~take)), stable=True)
+            return take & (rank < openers - position)
+
+        take = jax.lax.cond(take.sum() > openers - position, best_of, lambda t: t, take)
+        taken_in = jnp.where(take, round_, taken_in)
+        taken_tier, taken_value = jnp.where(take, tier, taken_tier), jnp.where(take, value, taken_value)
+        # The wanted ones taken are imagined skills for the rest: the nearest of them merged into each row.
+        from_taken = jnp.where(wanted_seen & take[others], gap, jnp.inf)
+        nearest = jnp.argmin(from_taken, axis=1)
+        d_taken = jnp.take_along_axis(from_taken, nearest[:, None], axis=1)[:, 0]
+        if near.shape[1] == 1:
+            merged = jnp.minimum(near, d_taken[:, None])
+        else:
+            merged = jnp.sort(jnp.concatenate([near, from_taken], axis=1), axis=1)[:, :near.shape[1]]
+        nearest_quality = jnp.where(d_taken < near[:, 0], q[others[jnp.arange(size), nearest]], nearest_quality)
+        return (merged, nearest_quality, free & ~take, position + take.sum(dtype=jnp.int32), taken_in, taken_tier,
+                taken_value), None
+
+    none = jnp.full(size, rounds, jnp.int32)
+    start = (near, judged.nearest_quality, jnp.ones(size, bool), jnp.int32(0), none, jnp.zeros(size, jnp.int32),
+             jnp.zeros(size))
+    (near, nearest_quality, free, _, taken_in, taken_tier, taken_value), _ = jax.lax.scan(
+        one_round, start, jnp.arange(rounds, dtype=jnp.int32))
+    # The openers' rows: by round taken, each round best first; then the best of the rest by a last ranking.
+    tier, value, _ = _tiers(near, nearest_quality, free, False, q, finite, optimism, factor, wanted, plausible,
+                            t_dist, quality_margin)
+    chosen = jnp.lexsort((-jnp.where(free, value, taken_value), -jnp.where(free, tier, taken_tier), taken_in))
+    rows = chosen[:openers]
+    if quality_count:
+        left = jnp.ones(size, bool).at[rows].set(False)
+        tier, value, _ = _tiers(near, nearest_quality, left, True, q, finite, optimism, factor, wanted,
+                                plausible, t_dist, quality_margin)
+        extra = jnp.lexsort((-value, -tier))[:quality_count]
+        steps = np.arange(num)
+        is_quality = (steps + 1) * quality_count // num > steps * quality_count // num
+        slots = np.zeros(num, np.int64)
+        slots[is_quality], slots[~is_quality] = np.arange(openers, num), np.arange(openers)
+        rows = jnp.concatenate([rows, extra])[slots]
+    return rows.astype(jnp.int32)
+
+
 @dataclasses.dataclass(frozen=True)
 class Diverse:
     """Batch-diverse optimistic ranking: of `pool_factor` x num candidates, roll out num chosen one at a time
@@ -316,7 +478,10 @@ class Diverse:
     nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`; times the parent's relative
     novelty to the power `parent_weight`: 0, not read; a `quality_share` of the steps prefer predicted quality
     improvements of held niches larger than `quality_margin` x the standard deviation of the repertoire's
-    qualities)."""
+    qualities). `selection`: "greedy" (one at a time, `greedy_diverse`: the oracle of what diverse means),
+    "rounds" (`rounds_diverse`: `rounds` data-parallel rounds, then filled by score), or "auto": rounds where
+    `num` >= `ROUNDS_FROM` (where they are faster), else greedy (so smaller runs repeat earlier versions' bit for
+    bit)."""
 
     pool_factor: int = 8
     beta: float = 1.0
@@ -324,6 +489,8 @@ class Diverse:
     parent_weight: float = 0.0
     quality_share: float = 0.0
     quality_margin: float = 0.0
+    selection: str = "auto"
+    rounds: int = 8
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
@@ -335,6 +502,10 @@ class Diverse:
             raise ValueError(f"Diverse.neighbours={self.neighbours!r} is invalid: expected an int >= 1")
         if not (is_real(self.quality_share) and 0 <= self.quality_share <= 1):
             raise ValueError(f"Diverse.quality_share={self.quality_share!r} is invalid: expected a float in [0, 1]")
+        if self.selection not in SELECTIONS:
+            raise ValueError(f"Diverse.selection={self.selection!r} is invalid: expected one of {SELECTIONS}")
+        if not (is_int(self.rounds) and self.rounds >= 1):
+            raise ValueError(f"Diverse.rounds={self.rounds!r} is invalid: expected an int >= 1")
 
     def pool_size(self, num: int) -> int:
         return num * self.pool_factor
@@ -346,8 +517,12 @@ class Diverse:
         margin = 0.0
         if self.quality_margin:  # scale-free: in standard deviations of the repertoire's qualities (0 while empty)
             margin = self.quality_margin * jnp.std(repertoire.qualities, where=repertoire.valid)
-        top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
-                             self.quality_share, jnp.nan_to_num(margin))
+        if self.selection == "rounds" or (self.selection == "auto" and num >= ROUNDS_FROM):
+            top = rounds_diverse(judged, wanted, params.t_dist, self.beta, num, self.rounds, self.neighbours,
+                                 self.parent_weight, self.quality_share, jnp.nan_to_num(margin))
+        else:
+            top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
+                                 self.quality_share, jnp.nan_to_num(margin))
         return ranked_result(top, wanted)
 
 
