@@ -386,6 +386,19 @@ def test_rounds_open_nearly_as_many_niches_as_the_greedy_oracle(crowd):
     assert opened(b, rounds, skills, 0.02) >= 0.95 * opened(b, greedy, skills, 0.02)
 
 
+def test_rounds_put_unwanted_candidates_last_and_nan_predictions_last_of_the_wanted():
+    rep = repertoire_of([[0.5, 0.5]], [0.5])
+    b = np.array(jax.random.uniform(jax.random.PRNGKey(4), (50, 2)))
+    b[[3, 17]] = np.nan
+    pool = judged(b, jax.random.uniform(jax.random.PRNGKey(5), (50,)), rep)
+    wanted = jnp.arange(50) % 10 != 0  # 0, 10, ..., 40: not wanted
+    for rows in (rounds_diverse(pool, wanted, jnp.float32(0.05), 1.0, 50, 4),
+                 greedy_diverse(pool, wanted, jnp.float32(0.05), 1.0, 50)):  # as the oracle does
+        rows = np.asarray(rows)
+        assert sorted(rows.tolist()) == list(range(50))
+        assert set(rows[-5:].tolist()) == {0, 10, 20, 30, 40} and set(rows[-7:-5].tolist()) == {3, 17}
+
+
 def test_diverse_chooses_in_rounds_from_rounds_from_rows_and_one_at_a_time_below(monkeypatch):
     from mqd_jax.emitters import acquisition
 

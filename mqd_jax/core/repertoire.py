@@ -286,14 +286,20 @@ def _window_sizes(size: int) -> list[int]:
 
 def _axis(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
     """The behavior axis along which a band 2 t_dist wide holds the fewest of points [P, d] (those ok [P]) at
-    most, estimated without sorting: per axis, P bins at least t_dist wide, and the most any 3 adjacent hold."""
+    most (`crowding`)."""
+    return jnp.argmin(crowding(points, ok, t_dist)).astype(jnp.int32)
+
+
+def crowding(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
+    """[d] per behavior axis, the most of points [P, d] (those ok [P]) that a band 2 t_dist wide holds, estimated
+    without sorting: P bins at least t_dist wide, and the most any 3 adjacent hold."""
     pop, dim = points.shape
     low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
     spread = jnp.where(ok[:, None], points, -jnp.inf).max(axis=0) - low
     bin_width = jnp.maximum(t_dist, spread / pop)
     bins = jnp.clip(jnp.where(ok[:, None], (points - low) / bin_width, 0.0), 0, pop - 1).astype(jnp.int32)
     counts = jnp.zeros((dim, pop + 2), jnp.int32).at[jnp.arange(dim), bins + 1].add(ok[:, None].astype(jnp.int32))
-    return jnp.argmin((counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]).max(axis=1)).astype(jnp.int32)
+    return (counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]).max(axis=1)
 
 
 def _searched(behaviors: jax.Array, usable: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -240,39 +240,29 @@ def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
 
 SELECTIONS = ("auto", "greedy", "rounds")  # Diverse's ways to choose
 # "auto" chooses in rounds from this many rows on (a pool of 8 x that), one at a time below: on a 2-core CPU the
-# rounds cost 6 ms at 100 rows against the greedy steps' 0.5, and 40 against 47 ms at 1,024, 80 against 800 at
-# 4,096 (experiments/selection_timing.py).
+# rounds cost 6-11 ms at 100 rows against the greedy steps' 0.5, about the same at 1,024, and 5-10x less at 4,096
+# (experiments/selection_timing.py; docs/design.md, "Batch-diverse, optimistic acquisition").
 ROUNDS_FROM = 1024
 # Pool neighbours `pool_neighbours` reads per row of grid cells (three rows in two dimensions or more, one row of
 # three cells in one): what a candidate of `rounds_diverse` sees of the pool, whatever the pool's size.
 WINDOW = 32
 
 
-def _crowding(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
-    """[d] per behavior axis, the most of points [P, d] (those ok [P]) that a band 2 t_dist wide holds, estimated
-    without sorting (P bins at least t_dist wide, the most any 3 adjacent hold): low is where bands are short."""
-    pop, dim = points.shape
-    low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
-    spread = jnp.where(ok[:, None], points, -jnp.inf).max(axis=0) - low
-    bin_width = jnp.maximum(t_dist, spread / pop)
-    bins = jnp.clip(jnp.where(ok[:, None], (points - low) / bin_width, 0.0), 0, pop - 1).astype(jnp.int32)
-    counts = jnp.zeros((dim, pop + 2), jnp.int32).at[jnp.arange(dim), bins + 1].add(ok[:, None].astype(jnp.int32))
-    return (counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]).max(axis=1)
-
-
 def pool_neighbours(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Each point's neighbours among points [N, d] (those ok [N]) that may lie within `t_dist` of it: ids [N, K]
     and whether each is one (bool [N, K]; never the point itself), K = 3 x WINDOW, found without an [N, N] matrix.
 
-    The points are binned in a grid of cells `t_dist` wide on their two least crowded axes (`_crowding`; one in
-    one dimension) and sorted by cell: every point within `t_dist` of a point lies in its cell or an adjacent one,
-    which are three runs of the sorted order (one in one dimension), and each run is read for WINDOW places. Exact
-    where no run holds more; otherwise the first WINDOW of each run (the rest unseen)."""
+    The points are binned in a grid of cells `t_dist` wide on their two least crowded axes
+    (`repertoire.crowding`; one in one dimension) and sorted by cell: every point within `t_dist` of a point lies
+    in its cell or an adjacent one, which are three runs of the sorted order (one in one dimension), and each run
+    is read for WINDOW places. Exact where no run holds more; otherwise the first WINDOW of each run (the rest
+    unseen)."""
     size, dim = points.shape
     if dim == 1:
         axes, rows = jnp.zeros(2, jnp.int32), (0,)
     else:
-        axes, rows = jnp.argsort(_crowding(points, ok, t_dist), stable=True)[:2].astype(jnp.int32), (-1, 0, 1)
+        crowded = repertoire_lib.crowding(points, ok, t_dist)
+        axes, rows = jnp.argsort(crowded, stable=True)[:2].astype(jnp.int32), (-1, 0, 1)
     span = 2**15  # cells per axis at most (ids stay int32); far points share the border cells: read, not lost
     low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
     cell = jnp.clip(jnp.floor((jnp.take(points, axes, axis=1) - low[axes]) / t_dist), 0, span - 3).astype(jnp.int32)
