@@ -2,6 +2,7 @@
 
     python experiments/bench_qd.py [--generations 250] [--qdax-generations 10] [--out results/bench_qd.md]
     python experiments/bench_qd.py --only-ratios [--ratio-tasks obstacle2d push_cube] [--out ...]
+    python experiments/bench_qd.py --only-batches [--batches 100 1024 4096] [--batch-generations 100] [--out ...]
 
 All run the paper's 2D settings (population 100, K 5, t_dist 0.02) on the same
 task: mqd-jax through its jitted `run_mqd`; pyribs (`pip install -e .[bench]`)
@@ -18,6 +19,10 @@ rollouts are nearly free, and PushCube on C MuJoCo, where a rollout costs far mo
 generation of the default "mqd" and of QD at Table II's settings, from repertoires grown for the task's
 Table II generations, timed in turns (`generation_ratio.ms_per_generation`). `--only-ratios` measures
 only that (the peers need the `bench` extra).
+
+And the batch sizes a user with many cores picks (`--batches`): whole runs of `--batch-generations` from an
+empty archive at each population, pyribs' `ProximityArchive` (as above, unbounded) against our QD and M-QD
+(capacity max(4096, batch)), compile excluded, one process, back to back; `--only-batches` measures only that.
 """
 
 from __future__ import annotations
@@ -127,9 +132,15 @@ def main() -> None:
     parser.add_argument("--capacities", type=int, nargs="*", default=[1024, 4096, 16384])
     parser.add_argument("--ratio-tasks", nargs="*", default=["obstacle2d", "push_cube"])
     parser.add_argument("--only-ratios", action="store_true", help="only M-QD against QD (no peers)")
+    parser.add_argument("--batches", type=int, nargs="*", default=[100, 1024, 4096])
+    parser.add_argument("--batch-generations", type=int, default=100)
+    parser.add_argument("--only-batches", action="store_true", help="only the batch sizes against pyribs")
     parser.add_argument("--out", default="results/bench_qd.md")
     args = parser.parse_args()
-    lines = [f"Machine: {report.machine()}.", ""] if args.only_ratios else peers(args)
+    if args.only_batches:
+        report.write(batches(args), args.out)
+        return
+    lines = [f"Machine: {report.machine()}.", ""] if args.only_ratios else peers(args) + batches(args)
     if args.ratio_tasks:
         lines += ["M-QD (\"mqd\", its defaults) against QD, one generation at Table II's settings from repertoires "
                   "grown for the task's Table II generations (C MuJoCo on the robot tasks), fastest of 5 rounds' "
@@ -140,6 +151,24 @@ def main() -> None:
             lines.append(f"| {task} | {ms['qd']:.2f} | {ms['mqd']:.2f} | {ms['mqd'] / ms['qd']:.2f} |")
             print(lines[-1], flush=True)
     report.write(lines, args.out)
+
+
+def batches(args: argparse.Namespace) -> list[str]:
+    """Whole runs at each of `args.batches` candidates per generation: pyribs against our QD and M-QD (markdown)."""
+    lines = [f"2D Obstacle, whole runs of {args.batch_generations} generations from empty, compile excluded; "
+             f"{report.machine()}.", "",
+             "| batch | pyribs ms / generation | our QD ms / generation | x pyribs | our M-QD ms / generation "
+             "| x pyribs |", "|---|---|---|---|---|---|"]
+    for batch in args.batches:
+        cfg = Config.paper_2d(task=TASK, algorithm="qd", max_generations=args.batch_generations,
+                              population_size=batch, capacity=max(4096, batch), archive_capacity=max(4096, batch))
+        bench_pyribs(dataclasses.replace(cfg, max_generations=5))  # pyribs' first calls pay one-time costs
+        ribs, qd = bench_pyribs(cfg)["ms_per_gen"], bench_ours(cfg)["ms_per_gen"]
+        mqd = bench_ours(dataclasses.replace(cfg, algorithm="mqd"))["ms_per_gen"]
+        lines.append(f"| {batch} | {ribs:.2f} | {qd:.2f} | {qd / ribs:.2f} | {mqd:.2f} | {mqd / ribs:.2f} |")
+        print(lines[-1], flush=True)
+        report.write(lines, args.out)
+    return [*lines, ""]
 
 
 def peers(args: argparse.Namespace) -> list[str]:

@@ -1,6 +1,7 @@
 """Where compiling a run's program goes: the whole chunk and each stage of a generation, traced and compiled alone.
 
     python experiments/compile_time.py [--task push_cube] [--algorithms qd mqd] [--out results/compile_time.md]
+    python experiments/compile_time.py --algorithms mqd mqd:steering_share=0   # an algorithm with options
     PYTHONPATH=OLD_CHECKOUT:experiments python experiments/compile_time.py ...   # the same, older code (0.13 on)
 
 For each algorithm (Table II's column of the task, `Config.paper`), the program `mqd run` compiles (a chunk
@@ -13,6 +14,7 @@ XLA to compile, and the lowered program's size (StableHLO operations). No compil
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from collections.abc import Callable
 from typing import Any
@@ -38,7 +40,10 @@ def timed(fn: Callable[..., Any], *args: Any, static: tuple[int, ...] = ()) -> t
 
 
 def rows(task: str, algorithm: str) -> dict[str, tuple[float, float, int]]:
-    cfg = Config.paper(task, algorithm=algorithm)
+    """The programs' times of `algorithm`: a preset's name, or "name:option=value,..." (values as JSON)."""
+    name, _, given = algorithm.partition(":")
+    options = {k: json.loads(v) for k, v in (item.split("=", 1) for item in given.split(","))} if given else {}
+    cfg = Config.paper(task, algorithm=name, algorithm_options=options)
     params = cfg.params()
     state = init(jax.random.PRNGKey(0), cfg)
     found = {"run chunk": timed(lambda s, p: run_generations(s, cfg, p, 10), state, params)}

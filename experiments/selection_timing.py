@@ -1,6 +1,6 @@
 """Diverse's two selections against each other: ms per choice and niches opened, on random pools.
 
-    python experiments/selection_timing.py [--populations 100 256 512 1024 2048 4096] [--rounds 8]
+    python experiments/selection_timing.py [--populations 100 256 512 1024 2048 4096] [--rounds 16]
 
 A pool of 8 x population uniform predicted behaviors in [0, 1]^2 beside 300 random skills (t_dist 0.02,
 quality_share 0.1, every candidate wanted): the median of 3 jitted calls (compile excluded) of `greedy_diverse`
@@ -32,7 +32,7 @@ def opened(b: np.ndarray, rows: np.ndarray, skills: np.ndarray, t_dist: float) -
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--populations", type=int, nargs="+", default=[100, 256, 512, 1024, 2048, 4096])
-    parser.add_argument("--rounds", type=int, default=8)
+    parser.add_argument("--rounds", type=int, default=16)
     args = parser.parse_args()
     print(f"{report.machine()}; pools of 8 x population in [0, 1]^2, 300 skills, t_dist 0.02, median of 3, ms")
     print("| population | greedy ms | rounds ms | greedy opened | rounds opened |\n|---|---|---|---|---|")

@@ -372,18 +372,22 @@ def test_rounds_take_what_greedy_takes_where_no_two_candidates_interact():
 
 @pytest.mark.parametrize("crowd", [1.0, 0.3])
 def test_rounds_open_nearly_as_many_niches_as_the_greedy_oracle(crowd):
-    """The oracle of what diverse means: the greedy choice one at a time. The rounds' choice opens at least 95% of
-    the niches it opens (brute force), every row distinct, from pools spread out and crowded."""
-    key = jax.random.split(jax.random.PRNGKey(0), 3)
-    skills = np.asarray(jax.random.uniform(key[0], (40, 2)))
-    b = np.asarray(jax.random.uniform(key[1], (2000, 2))) * crowd
-    rep = repertoire_of(skills, np.full(40, 0.5), capacity=64)
-    pool = judged(b, jax.random.uniform(key[2], (2000,)), rep)
-    wanted, t = jnp.ones(2000, bool), jnp.float32(0.02)
-    greedy = greedy_diverse(pool, wanted, t, 1.0, 250, quality_share=0.1)
-    rounds = rounds_diverse(pool, wanted, t, 1.0, 250, 8, quality_share=0.1)
-    assert len(set(np.asarray(rounds).tolist())) == 250 and int(rounds.min()) >= 0 and int(rounds.max()) < 2000
-    assert opened(b, rounds, skills, 0.02) >= 0.95 * opened(b, greedy, skills, 0.02)
+    """The oracle of what diverse means: the greedy choice one at a time. Over 4 pools, spread out and crowded,
+    the rounds' choice opens on average at least 95% of the niches it opens and never under 90% (brute force),
+    every row distinct. (Crowded pools need more than 8 rounds: with 8, one of these pools opened 71%.)"""
+    shares = []
+    for seed in range(4):
+        key = jax.random.split(jax.random.PRNGKey(seed), 3)
+        skills = np.asarray(jax.random.uniform(key[0], (40, 2)))
+        b = np.asarray(jax.random.uniform(key[1], (2000, 2))) * crowd
+        rep = repertoire_of(skills, np.full(40, 0.5), capacity=64)
+        pool = judged(b, jax.random.uniform(key[2], (2000,)), rep)
+        wanted, t = jnp.ones(2000, bool), jnp.float32(0.02)
+        greedy = greedy_diverse(pool, wanted, t, 1.0, 250, quality_share=0.1)
+        rounds = rounds_diverse(pool, wanted, t, 1.0, 250, Diverse().rounds, quality_share=0.1)
+        assert len(set(np.asarray(rounds).tolist())) == 250 and int(rounds.min()) >= 0 and int(rounds.max()) < 2000
+        shares.append(opened(b, rounds, skills, 0.02) / opened(b, greedy, skills, 0.02))
+    assert np.mean(shares) >= 0.95 and min(shares) >= 0.9, shares
 
 
 def test_rounds_put_unwanted_candidates_last_and_nan_predictions_last_of_the_wanted():

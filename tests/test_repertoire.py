@@ -201,19 +201,21 @@ def _random_generations(rng, batch, capacity, pop, dim):
     return reps, jnp.asarray(b.astype(np.float32)), jnp.asarray(q), jnp.asarray(rng.random((batch, pop)) > 0.1)
 
 
-@pytest.mark.parametrize(("dim", "window"), [(1, 64), (3, 1), (8, 64)])
+@pytest.mark.parametrize(("dim", "window"), [(1, 16), (3, 1), (8, 16)])
 def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim, window, monkeypatch):
     """The sequential rule, kept as the oracle, against the rounds, on 96 random problems per dimension (vmapped):
     statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1. The
-    rounds read each candidate's band of candidates along one axis, in windows of `window` * 4^j places (or P)."""
-    monkeypatch.setattr(repertoire, "MIN_WINDOW", window)
+    rounds read each candidate's runs of grid cells, `window` * 4^j places (or P) of each; the full searches of
+    the skills that remain run 3 candidates at a time."""
+    monkeypatch.setattr(repertoire, "MIN_RUN", window)
+    monkeypatch.setattr(repertoire, "SEARCH_ROWS", 3)
     capacity, pop = 48, 24
 
     def both(rep, b, q, usable, t_dist):
         near_d, near_i = repertoire._nearest_before(2, capacity, rep, b)
         return (repertoire._sequential_rule(rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist),
                 repertoire._parallel_rule(rep, b, near_d, near_i, q, usable, t_dist,
-                                          *repertoire._searched(b, usable, t_dist)))
+                                          repertoire._searched(b, usable, t_dist)[0]))
 
     rng = np.random.default_rng(dim)
     reps, b, q, usable = _random_generations(rng, 96, capacity, pop, dim)

@@ -26,7 +26,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from mqd_jax.core import batching, neighbours, pytree
+from mqd_jax.core import batching, grid, neighbours, pytree
 
 # Nearest pre-generation skills (within t_dist) listed per candidate before the rule (`insert`'s num_near).
 NUM_NEAR = 4
@@ -195,17 +195,25 @@ def _first_at(targets: jax.Array, size: int) -> jax.Array:
         jnp.arange(pop, dtype=jnp.int32), mode="drop")
 
 
+# The candidates `_search_remaining` searches at a time: a round reads [SEARCH_ROWS, C] distances per step of
+# its search, so [P, C] only when every candidate needs one.
+SEARCH_ROWS = 64
+
+
 def _search_remaining(need_all: jax.Array, removed_at: jax.Array, behaviors: jax.Array, rep: Repertoire,
                       quick: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
     """`quick` (squared distance, slot, quality of each candidate's nearest pre-generation skill [P]) where
     need_all[P] is False; elsewhere those of the nearest pre-generation skill that no candidate before it replaced
-    (removed_at[C]: the first candidate that replaced each slot, P if none)."""
-    cands = jnp.arange(behaviors.shape[0], dtype=jnp.int32)
-    there = rep.valid[None] & (removed_at[None] >= cands[:, None])
-    d = jnp.where(there, neighbours.sq_dists(behaviors, rep.behaviors), jnp.inf)
-    d, j = neighbours.min_with_index(d, jnp.broadcast_to(jnp.arange(rep.capacity), d.shape))
-    found = (d, j, rep.qualities[j])
-    return tuple(jnp.where(need_all, a, b) for a, b in zip(found, quick, strict=True))
+    (removed_at[C]: the first candidate that replaced each slot, P if none), searched SEARCH_ROWS candidates at a
+    time (`batching.for_each_chunk`)."""
+    def search(rows: jax.Array, found: tuple[jax.Array, ...], behaviors: jax.Array, rep: Repertoire,
+               removed_at: jax.Array) -> tuple[jax.Array, ...]:
+        there = rep.valid[None] & (removed_at[None] >= rows[:, None])
+        d = jnp.where(there, neighbours.sq_dists(behaviors[rows], rep.behaviors), jnp.inf)
+        d, j = neighbours.min_with_index(d, jnp.broadcast_to(jnp.arange(rep.capacity), d.shape))
+        return tuple(x.at[rows].set(y, mode="drop") for x, y in zip(found, (d, j, rep.qualities[j]), strict=True))
+
+    return batching.for_each_chunk(need_all, SEARCH_ROWS, search, quick, behaviors, rep, removed_at)
 
 
 def _rounds(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array, cols: jax.Array,
@@ -231,8 +239,7 @@ def _rounds(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: ja
         take = lambda x: jnp.take_along_axis(x, first[:, None], axis=1)[:, 0]  # noqa: E731
         quick = (jnp.where(still_there.any(1), take(near_d), jnp.inf), take(near_i), take(near_q))
         need_all = ~still_there.any(1) & (near_d[:, -1] <= t2)
-        d_old, slot_old, q_old = batching.rare_cond(need_all.any(), _search_remaining, lambda *a: a[-1], need_all,
-                                                    removed_at, behaviors, rep, quick)
+        d_old, slot_old, q_old = _search_remaining(need_all, removed_at, behaviors, rep, quick)
         # The nearest skill within t_dist written earlier in the generation, the lowest slot among equally near.
         alive = jnp.isfinite(dists) & lives[cols] & (killed_at[cols] >= cands[:, None])
         d_row = jnp.where(alive, dists, jnp.inf)
@@ -286,24 +293,12 @@ def _window_sizes(size: int) -> list[int]:
 
 def _axis(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
     """The behavior axis along which a band 2 t_dist wide holds the fewest of points [P, d] (those ok [P]) at
-    most (`crowding`)."""
-    return jnp.argmin(crowding(points, ok, t_dist)).astype(jnp.int32)
-
-
-def crowding(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
-    """[d] per behavior axis, the most of points [P, d] (those ok [P]) that a band 2 t_dist wide holds, estimated
-    without sorting: P bins at least t_dist wide, and the most any 3 adjacent hold."""
-    pop, dim = points.shape
-    low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
-    spread = jnp.where(ok[:, None], points, -jnp.inf).max(axis=0) - low
-    bin_width = jnp.maximum(t_dist, spread / pop)
-    bins = jnp.clip(jnp.where(ok[:, None], (points - low) / bin_width, 0.0), 0, pop - 1).astype(jnp.int32)
-    counts = jnp.zeros((dim, pop + 2), jnp.int32).at[jnp.arange(dim), bins + 1].add(ok[:, None].astype(jnp.int32))
-    return (counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]).max(axis=1)
+    most (`grid.crowding`)."""
+    return jnp.argmin(grid.crowding(points, ok, t_dist)).astype(jnp.int32)
 
 
 def _searched(behaviors: jax.Array, usable: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """The candidates a band search looks for (usable, finite behaviors) [P], and the axis of its bands."""
+    """The candidates the searches look for (usable, finite behaviors) [P], and the axis of the skills' bands."""
     ok = usable & jnp.isfinite(behaviors).all(axis=1)
     return ok, _axis(behaviors, ok, t_dist)
 
@@ -360,11 +355,14 @@ def _near_within(num_near: int, min_prefix: int, rep: Repertoire, behaviors: jax
     return _on_prefix(_prefix_sizes(rep.capacity, min_prefix), rep.count, search, rep, behaviors, ok, axis, t_dist)
 
 
+# The narrowest run `_parallel_rule` reads of the grid's cells (`grid.in_cells`); wider ones are 4x, 16x, ... it.
+MIN_RUN = 16
+
+
 def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
-                   qualities: jax.Array, usable: jax.Array, t_dist: jax.Array, ok: jax.Array,
-                   axis: jax.Array) -> Insertion:
+                   qualities: jax.Array, usable: jax.Array, t_dist: jax.Array, ok: jax.Array) -> Insertion:
     """The sequential rule's outcome (`_sequential_rule`'s arguments but d_cand), computed in data-parallel rounds;
-    ok, axis: `_searched`'s (the candidates searched for, the axis of the bands).
+    ok: `_searched`'s (the candidates searched for).
 
     Every candidate's step is a function of the outcomes of the candidates before it. A round computes every
     candidate's step at once from the previous round's outcomes (the first round: from none); the outcomes
@@ -373,25 +371,25 @@ def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, nea
     r at least the first r candidates are settled; in practice a generation settles in a few rounds, as only
     candidates within 2 t_dist of each other (a shared nearest skill, or one nearest the other) and the running
     count of added skills (slots, a full repertoire) link them. Of the earlier candidates, a step reads only
-    those within t_dist, found once per generation in bands along one behavior axis (`_bands`, `_axis`): W
-    places per candidate, W the smallest of MIN_WINDOW * 4^j (or P) that holds the widest band, so a round
-    costs O(P (M + W)) and no [P, P] matrix is formed. Returns the outcome
-    (`Insertion.slot` is meaningful where the candidate is alive at the end; `rounds`: the rounds taken, the
-    last one the check that nothing changes).
+    those within t_dist, found once per generation in a grid of cells (`grid`): 3 runs of W places per
+    candidate, W the smallest of MIN_RUN * 4^j (or P) that holds the longest run, so a round costs O(P (M + W))
+    and no [P, P] matrix is formed. Returns the outcome (`Insertion.slot` is meaningful where the candidate is
+    alive at the end; `rounds`: the rounds taken, the last one the check that nothing changes).
     """
-    order, lo, hi, widest = _bands(behaviors, ok, behaviors, ok, axis, t_dist)
+    pop = behaviors.shape[0]
+    cells = grid.cells(behaviors, ok, t_dist)
 
     def rule(width: int, rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: jax.Array,
-             qualities: jax.Array, usable: jax.Array, order: jax.Array, lo: jax.Array, hi: jax.Array,
-             t_dist: jax.Array) -> Insertion:
-        d, cols = _in_band(width, behaviors, behaviors, order, lo, hi)
-        earlier = (cols < jnp.arange(cols.shape[0])[:, None]) & (d <= t_dist**2)
+             qualities: jax.Array, usable: jax.Array, cells: grid.Cells, t_dist: jax.Array) -> Insertion:
+        cols, there = grid.in_cells(width, cells)
+        d = sum((behaviors[:, None, k] - behaviors[cols, k]) ** 2 for k in range(behaviors.shape[1]))
+        earlier = there & (cols < jnp.arange(pop)[:, None]) & (d <= t_dist**2)
         # One buffer of distances, read by every round alike (a recomputation could round otherwise).
         dists = jax.lax.optimization_barrier(jnp.where(earlier, d, jnp.inf))
         return _rounds(rep, behaviors, near_d, near_i, cols, dists, qualities, usable, t_dist)
 
-    return _on_prefix(_window_sizes(behaviors.shape[0]), widest, rule, rep, behaviors, near_d, near_i, qualities,
-                      usable, order, lo, hi, t_dist)
+    widths = [*(MIN_RUN * 4**j for j in range(pop.bit_length()) if 2 * MIN_RUN * 4**j <= pop), pop]
+    return _on_prefix(widths, cells.longest, rule, rep, behaviors, near_d, near_i, qualities, usable, cells, t_dist)
 
 
 def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
@@ -502,9 +500,9 @@ def insert(rep: Repertoire, actions: jax.Array, behaviors: jax.Array, qualities:
     sizes = _prefix_sizes(capacity, min_prefix)
     # The actions and features are only written, at the slots the rule picks: they stay out of the prefix work.
     slim = rep.replace(actions=jnp.zeros((capacity, 0), rep.actions.dtype), features=jnp.zeros((capacity, 0)))
-    ok, axis = _searched(behaviors, usable, t_dist)  # once, for both band searches
+    ok, axis = _searched(behaviors, usable, t_dist)
     near_d, near_i = _near_within(num_near, min_prefix, slim, behaviors, ok, axis, t_dist)
-    ins = _parallel_rule(rep, behaviors, near_d, near_i, qualities, usable, t_dist, ok, axis)
+    ins = _parallel_rule(rep, behaviors, near_d, near_i, qualities, usable, t_dist, ok)
     new = _on_prefix(sizes, jnp.minimum(rep.count + pop, capacity), functools.partial(_apply, k, chunk), slim,
                      behaviors, qualities, ins)
     written = written_slots(ins, capacity)

@@ -37,8 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mqd_jax.core import grid, pytree
 from mqd_jax.core import neighbours as neighbours_lib
-from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.checks import check_traced, is_int, is_real
 from mqd_jax.core.params import Params
@@ -240,9 +240,11 @@ def parent_factor(judged: Judged, weight: float) -> jax.Array | float:
 
 SELECTIONS = ("auto", "greedy", "rounds")  # Diverse's ways to choose
 # "auto" chooses in rounds from this many rows on (a pool of 8 x that), one at a time below: on a 2-core CPU the
-# rounds cost 6-11 ms at 100 rows against the greedy steps' 0.5, about the same at 1,024, and 5-10x less at 4,096
-# (experiments/selection_timing.py; docs/design.md, "Batch-diverse, optimistic acquisition").
-ROUNDS_FROM = 1024
+# rounds cost 1.4 ms at 100 rows against the greedy steps' 0.7, 0.4x them at 1,024 and 0.2x at 4,096
+# (experiments/selection_timing.py), but search less well: at 1,024, 2D Obstacle's coverage after 100
+# generations 0.978 against greedy's 0.995; at 4,096 it catches up by 40 generations (docs/design.md,
+# "Batch-diverse, optimistic acquisition"). Below, runs repeat earlier versions' bit for bit.
+ROUNDS_FROM = 2048
 # Pool neighbours `pool_neighbours` reads per row of grid cells (three rows in two dimensions or more, one row of
 # three cells in one): what a candidate of `rounds_diverse` sees of the pool, whatever the pool's size.
 WINDOW = 32
@@ -250,38 +252,11 @@ WINDOW = 32
 
 def pool_neighbours(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Each point's neighbours among points [N, d] (those ok [N]) that may lie within `t_dist` of it: ids [N, K]
-    and whether each is one (bool [N, K]; never the point itself), K = 3 x WINDOW, found without an [N, N] matrix.
-
-    The points are binned in a grid of cells `t_dist` wide on their two least crowded axes
-    (`repertoire.crowding`; one in one dimension) and sorted by cell: every point within `t_dist` of a point lies
-    in its cell or an adjacent one, which are three runs of the sorted order (one in one dimension), and each run
-    is read for WINDOW places. Exact where no run holds more; otherwise the first WINDOW of each run (the rest
-    unseen)."""
-    size, dim = points.shape
-    if dim == 1:
-        axes, rows = jnp.zeros(2, jnp.int32), (0,)
-    else:
-        crowded = repertoire_lib.crowding(points, ok, t_dist)
-        axes, rows = jnp.argsort(crowded, stable=True)[:2].astype(jnp.int32), (-1, 0, 1)
-    span = 2**15  # cells per axis at most (ids stay int32); far points share the border cells: read, not lost
-    low = jnp.where(ok[:, None], points, jnp.inf).min(axis=0)
-    cell = jnp.clip(jnp.floor((jnp.take(points, axes, axis=1) - low[axes]) / t_dist), 0, span - 3).astype(jnp.int32)
-    cell = jnp.where(ok[:, None], cell + 1, 0)
-    ids = jnp.where(ok, cell[:, 1] * span + cell[:, 0], jnp.iinfo(jnp.int32).max) if dim > 1 else \
-        jnp.where(ok, cell[:, 0], jnp.iinfo(jnp.int32).max)
-    order = jnp.argsort(ids, stable=True)
-    ordered = ids[order]
-    found, there = [], []
-    width = 3 * WINDOW // len(rows)
-    for row in rows:
-        centre = ids + row * span if dim > 1 else ids
-        lo = jnp.searchsorted(ordered, centre - 1, "left")
-        hi = jnp.searchsorted(ordered, centre + 1, "right")
-        places = lo[:, None] + jnp.arange(width)
-        found.append(order[jnp.minimum(places, size - 1)])
-        there.append((places < hi[:, None]) & ok[:, None])
-    others, seen = jnp.concatenate(found, axis=1), jnp.concatenate(there, axis=1)
-    return others, seen & (others != jnp.arange(size)[:, None]) & ok[others]
+    and whether each is one (bool [N, K]; never the point itself), K = 3 x WINDOW, found without an [N, N] matrix
+    in a grid of cells (`grid`): each of a point's three runs of adjacent cells (one in one dimension) is read for
+    WINDOW places (3 x WINDOW in one dimension). Exact where no run holds more; otherwise the first WINDOW of each
+    run (the rest unseen)."""
+    return grid.in_cells(3 * WINDOW if points.shape[1] == 1 else WINDOW, grid.cells(points, ok, t_dist))
 
 
 def _diverse_terms(judged: Judged, beta: float, neighbours: int, parent_weight: float
@@ -378,7 +353,8 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
 def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int, rounds: int,
                    neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0,
                    quality_margin: float | jax.Array = 0.0) -> jax.Array:
-    """[num] pool rows chosen in `rounds` data-parallel rounds (non-maximum suppression), then filled by score; the
+    """[num] pool rows chosen in at most `rounds` data-parallel rounds (non-maximum suppression; they stop once the
+    budget is full or a round takes none), then filled by score; the
     first chosen first. `greedy_diverse`'s choice made parallel in the pool: its order, tiers and values, not its
     one-at-a-time steps.
 
@@ -389,8 +365,8 @@ def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     the candidates taken in one round never conflict, as a greedy choice would not take the second of two
     openers within `t_dist`. The wanted ones taken enter the imagined repertoire (their predicted behaviors),
     so the next round judges the rest against them. Spatial work is bounded: each candidate reads only the
-    3 x `WINDOW` pool neighbours `pool_neighbours` finds once per generation in a grid of `t_dist` cells (its
-    conflicts and the imagined skills it sees among them: exact where no cell row holds more than `WINDOW`).
+    3 x `WINDOW` pool neighbours `pool_neighbours` finds once per generation in a grid of cells (`grid`; its
+    conflicts and the imagined skills it sees among them: exact where no run of cells holds more than `WINDOW`).
     A round costs O(pool x WINDOW) (and a sort where more than the budget left win it); `rounds` rounds
     replace `num` sequential steps. `quality_share` of the rows are the quality steps' (improvers
     first, placed where `greedy_diverse` places its quality steps).
@@ -410,8 +386,8 @@ def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         """Whether candidate a ranks before candidate b (tier, then value, then the lower index): no sort."""
         return (tier_a > tier_b) | ((tier_a == tier_b) & ((value_a > value_b) | ((value_a == value_b) & (a < b_))))
 
-    def one_round(carry: tuple[jax.Array, ...], round_: jax.Array) -> tuple[tuple[jax.Array, ...], None]:
-        near, nearest_quality, free, position, taken_in, taken_tier, taken_value = carry
+    def one_round(carry: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
+        round_, _, near, nearest_quality, free, position, taken_in, taken_tier, taken_value = carry
         tier, value, _ = _tiers(near, nearest_quality, free, False, q, finite, optimism, factor, wanted,
                                 plausible, t_dist, quality_margin)
         mine = jnp.arange(size)[:, None]
@@ -435,14 +411,18 @@ def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         else:
             merged = jnp.sort(jnp.concatenate([near, from_taken], axis=1), axis=1)[:, :near.shape[1]]
         nearest_quality = jnp.where(d_taken < near[:, 0], q[others[jnp.arange(size), nearest]], nearest_quality)
-        return (merged, nearest_quality, free & ~take, position + take.sum(dtype=jnp.int32), taken_in, taken_tier,
-                taken_value), None
+        return (round_ + 1, take.any(), merged, nearest_quality, free & ~take, position + take.sum(dtype=jnp.int32),
+                taken_in, taken_tier, taken_value)
+
+    def more(carry: tuple[jax.Array, ...]) -> jax.Array:
+        """Rounds left, a round before took some, and budget left."""
+        return (carry[0] < rounds) & carry[1] & (carry[5] < openers)
 
     none = jnp.full(size, rounds, jnp.int32)
-    start = (near, judged.nearest_quality, jnp.ones(size, bool), jnp.int32(0), none, jnp.zeros(size, jnp.int32),
-             jnp.zeros(size))
-    (near, nearest_quality, free, _, taken_in, taken_tier, taken_value), _ = jax.lax.scan(
-        one_round, start, jnp.arange(rounds, dtype=jnp.int32))
+    start = (jnp.int32(0), jnp.bool_(True), near, judged.nearest_quality, jnp.ones(size, bool), jnp.int32(0), none,
+             jnp.zeros(size, jnp.int32), jnp.zeros(size))
+    _, _, near, nearest_quality, free, _, taken_in, taken_tier, taken_value = jax.lax.while_loop(
+        more, one_round, start)
     # The openers' rows: by round taken, each round best first; then the best of the rest by a last ranking.
     tier, value, _ = _tiers(near, nearest_quality, free, False, q, finite, optimism, factor, wanted, plausible,
                             t_dist, quality_margin)
@@ -480,7 +460,7 @@ class Diverse:
     quality_share: float = 0.0
     quality_margin: float = 0.0
     selection: str = "auto"
-    rounds: int = 8
+    rounds: int = 16
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
