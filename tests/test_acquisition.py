@@ -560,7 +560,8 @@ def flat(cfg):
     """`cfg` as a config dict of version 0.9, when every preset's settings were fields of the config."""
     saved = cfg.to_dict()
     options = saved.pop("algorithm_options")
-    later = ("features", "gate", "validity", "step_aside", "training_data", "rollout_buffer")  # options of 0.11, 0.16
+    later = ("features", "gate", "validity", "step_aside", "training_data", "rollout_buffer",  # options of 0.11, 0.16
+             "surrogate", "rule")  # and the parts of 0.18
     return {k: v for k, v in {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
                               "adaptation_step_size": 0.1, "adaptation_steps": 10}.items() if k not in later}
 

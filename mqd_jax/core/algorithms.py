@@ -42,9 +42,15 @@ def options(name: str) -> dict[str, Any]:
     return {p.name: p.default for p in parameters if p.name not in CONTEXT}
 
 
+def is_part(value: Any) -> bool:
+    """Whether an option's value is a part (an object such as a surrogate or a rule), not a plain setting."""
+    return value is not None and not isinstance(value, str | int | float | bool | list | tuple | dict)
+
+
 def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
     """Every option of the algorithm `name`: its defaults with `given` over them. Raises ValueError for an option
-    it does not take, or a value of another type than its default's (an int is a float too)."""
+    it does not take, or a value of another type than its default's (an int is a float too); an option whose
+    default is None takes a part (an object: `is_part`), given in Python."""
     known = options(name)
     for option, value in given.items():
         if option in CONTEXT:
@@ -54,6 +60,12 @@ def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
             listed = ", ".join(f"{o}={d!r}" for o, d in known.items()) or "none"
             raise ValueError(f"algorithm_options: {name!r} takes no option {option!r}; its options: {listed}")
         default = known[option]
+        if default is None:
+            if value is not None and not is_part(value):
+                raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected a part "
+                                 f"object, given in Python ({name}(... {option}=MyPart()) or Config(algorithm_options="
+                                 f"{{{option!r}: MyPart()}})), or None for the preset's own")
+            continue
         if not (type(value) is type(default) or (type(default) is float and type(value) is int)):
             kind = type(default).__name__
             raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected "

@@ -11,6 +11,7 @@ import math
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -44,3 +45,10 @@ def check_traced(owner: str, name: str, value: Any, lowest: float = 0.0, inclusi
         if highest is not None:
             allowed += f" and <= {highest}"
         raise ValueError(f"{owner}.{name}={float(v.ravel()[np.argmax(bad.ravel())])!r} is invalid: expected {allowed}")
+
+
+def shapes_of(tree: Any) -> str:
+    """A pytree's leaves as dtype[shape] (what a contract's message shows of what a part returned)."""
+    leaves = jax.tree.leaves(tree)
+    text = ", ".join(f"{jnp.result_type(x).name}{list(jnp.shape(x))}" for x in leaves)
+    return f"({text})" if len(leaves) != 1 else text

@@ -202,7 +202,9 @@ class Config:
         defaults too, so a file keeps its meaning if a default changes). A task `registry.make` built is its name
         (and "task_options" if it was made with options); other task and emitter objects are their repr."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["algorithm_options"] = self.options
+        # A part option left at None (the preset's own part) is not written: files keep their earlier form.
+        out["algorithm_options"] = {o: repr(v) if algorithms.is_part(v) else v for o, v in self.options.items()
+                                    if v is not None}
         named = registry.name_of(self.task)
         out["task"] = named[0] if named else repr(self.task)
         if named and named[1]:
@@ -228,6 +230,12 @@ class Config:
             raise ValueError(f"a saved config of the task {task!r}, which is not registered here")
         if options:
             saved["task"] = registry.make(task, **options)
+        taken = algorithms.options(saved["algorithm"])
+        parts = {o: v for o, v in dict(saved.get("algorithm_options", {})).items()
+                 if o in taken and taken[o] is None and v is not None}
+        if parts:
+            raise ValueError(f"a saved config of {saved['algorithm']!r} with the parts {parts}, written as their repr: "
+                             "a part object cannot be rebuilt from a file; build its Config in Python")
         return cls(**saved)
 
     @property

@@ -48,7 +48,7 @@ from mqd_jax.core.emitter import Emitter, Evaluated, Proposal, init_emitter
 from mqd_jax.core.params import Params, check_params_of, params_of
 from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.core.task import Task
-from mqd_jax.emitters import acquisition, anchoring
+from mqd_jax.emitters import acquisition, anchoring, contracts
 from mqd_jax.emitters import steering as steering_lib
 from mqd_jax.emitters.anchoring import prediction_error
 from mqd_jax.emitters.pursuit import Fallback
@@ -117,6 +117,9 @@ class ModelEmitter(Emitter):
       step_aside: a `StepAside`, or None: while the model's predictions explain no more of its rollouts'
         behaviors than chance, the generation is the inner emitter's own first candidates. Only with a ranking
         rule.
+      checks: check the parts' values every generation as the program runs (`contracts.values`: the rule's rows
+        in range and distinct, the surrogate's predictions finite after warm-up), stopping the run with an error
+        that names the part; their shapes and dtypes are checked as it is traced, always.
 
     Metrics: `discarded` (candidates the model turned down), `model_loss`
     (mean training loss of the generation's mini-batches; NaN when it did not
@@ -145,6 +148,7 @@ class ModelEmitter(Emitter):
     anchoring: str = "none"
     anchor: str = "parent"
     step_aside: StepAside | None = None
+    checks: bool = False
 
     # Its surrogate may keep data sized by the repertoire (`init(key, task, capacity)`).
     sized = True
@@ -161,6 +165,8 @@ class ModelEmitter(Emitter):
                              f"{anchoring.ANCHORING}")
         if self.anchor not in anchoring.ANCHORS:
             raise ValueError(f"ModelEmitter.anchor={self.anchor!r} is invalid: expected one of {anchoring.ANCHORS}")
+        if not isinstance(self.checks, bool):
+            raise ValueError(f"ModelEmitter.checks={self.checks!r} is invalid: expected a bool")
         for name, lowest in (("k", 1), ("warmup_samples", 0)):
             value = getattr(self, name)
             if not (is_int(value) and value >= lowest):
@@ -292,9 +298,11 @@ class ModelEmitter(Emitter):
             plain, anchored = self.predictions(state, pool.actions, repertoire, task, pool.parents, x)
             judged = self._judged(state, plain, anchored, repertoire, pool.actions, task, pool.parents)
         with jax.named_scope("acquire"):
-            rows, rollout, discarded = self.acquisition.select(
+            rows, rollout, discarded = contracts.selection(self.acquisition, self.acquisition.select(
                 jax.random.fold_in(key, 5), state.acquisition, judged, repertoire, pool.rollout,
-                params.part(params.emitter.acquisition), num)
+                params.part(params.emitter.acquisition), num), num)
+            if self.checks:
+                contracts.values(self.acquisition, self.surrogate, rows, pool_size, plain, warm_up)
             # During warm-up the pool's first rows as the inner emitter proposed them (the rule's choice unused).
             first = jnp.arange(num)
             rows = jnp.where(warm_up, first, rows).astype(jnp.int32)

@@ -3,7 +3,8 @@ a gradient transformation).
 
     random()                                              -> Uniform()
     qd(iso_sigma, line_sigma)                             -> IsoLine()
-    mqd(pool_factor=8, optimism=1.0, ...)                 -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
+    mqd(pool_factor=8, optimism=1.0, ..., surrogate=None, rule=None)
+                                                          -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
                                                                           Diverse(...), Surrogate(features, gate),
                                                                           fallback=Fallback(), steering=Steering(...),
                                                                           anchoring="auto")
@@ -14,11 +15,16 @@ a gradient transformation).
 Each preset's defaults are in its signature: the model's are Table II's 2D column (`TABLE_II` holds both
 columns). They are registered with `mqd_jax.core.algorithms`: a `Config` names a preset as `algorithm="mqd"`
 with `algorithm_options={"pool_factor": 16}`, checked against the signature (`algorithms.options`,
-`algorithms.build`); `k` is the run's (`Config.k`), passed by the config.
+`algorithms.build`); `k` is the run's (`Config.k`), passed by the config. An option whose default is None takes a
+part given in Python (`presets.mqd(surrogate=KNN())`, or `algorithm_options={"surrogate": KNN()}`), which
+replaces that part and keeps the preset's others.
 "mqd" is the best composition measured (docs/results.md); "mqd-paper" reproduces the paper's Algorithm 1.
 """
 
 from __future__ import annotations
+
+import inspect
+from typing import Any
 
 from mqd_jax.core import algorithms
 from mqd_jax.core.emitter import Emitter
@@ -39,6 +45,24 @@ TABLE_II = {
 }
 
 
+# The options of the built-in model and of `Diverse` that a preset does not read where one's own part replaces them
+# (Table II's settings among them are left alone: a config passes those for every run).
+_SURROGATE_OPTIONS = ("ensemble_size", "features", "gate", "validity", "training_data", "rollout_buffer")
+_RULE_OPTIONS = ("pool_factor", "optimism", "parent_weight", "quality_share")
+
+
+def _own_part(name: str, part: Any, given: dict[str, Any], options: tuple[str, ...]) -> None:
+    """ValueError where `part` (one's own, in place of the preset's) comes with options of the part it replaces
+    set to other than their defaults: they would not be read."""
+    if part is None:
+        return
+    defaults = {p.name: p.default for p in inspect.signature(mqd).parameters.values()}
+    unread = [f"{o}={given[o]!r}" for o in options if given[o] != defaults[o]]
+    if unread:
+        raise ValueError(f"mqd: {name}={part!r} replaces the preset's own, which {', '.join(unread)} would set: "
+                         f"they are not read; leave them out")
+
+
 def random() -> Emitter:
     """RANDOM: actions uniform in the action box."""
     return Uniform()
@@ -54,7 +78,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500,
         warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
         line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
-        step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096) -> Emitter:
+        step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096,
+        surrogate: Any = None, rule: Any = None) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -79,14 +104,26 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         chance, the generation is the inner emitter's own (plain QD emission).
       training_data, rollout_buffer: the model trains on the "repertoire" (Table II) or on its latest
         `rollout_buffer` usable "rollouts" (`Surrogate.training_data`).
+      surrogate: a surrogate of one's own (`mqd_jax.surrogate.protocol`) in place of the built-in model, the
+        preset's other parts kept (the inner emitter, the rule, fallback, steering, anchoring); None: the
+        built-in `Surrogate` of the options above. With one's own, ensemble_size, features, gate, validity,
+        training_data and rollout_buffer given other than their defaults are a ValueError (they would not be
+        read); Table II's hidden_size, batch_size, num_batches and learning_rate, which a config passes for every
+        run, are not read.
+      rule: an acquisition rule of one's own (`acquisition.Acquisition`) in place of `Diverse`, the other parts
+        kept; None: `Diverse` of the options above (pool_factor, optimism, parent_weight, quality_share: not
+        read with one's own, ValueError where given). Fallback and steering need a ranking rule.
     """
-    rule = Diverse(pool_factor, optimism, parent_weight=parent_weight, quality_share=quality_share)
+    _own_part("surrogate", surrogate, locals(), _SURROGATE_OPTIONS)
+    _own_part("rule", rule, locals(), _RULE_OPTIONS)
+    rule = rule if rule is not None else Diverse(pool_factor, optimism, parent_weight=parent_weight,
+                                                 quality_share=quality_share)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
     scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
-    surrogate = Surrogate(hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size,
-                          num_batches=num_batches, learning_rate=learning_rate, features=features,
-                          gate=Gate() if gate else None, validity=Validity() if validity else None,
-                          training_data=training_data, rollout_buffer=rollout_buffer)
+    surrogate = surrogate if surrogate is not None else Surrogate(
+        hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size, num_batches=num_batches,
+        learning_rate=learning_rate, features=features, gate=Gate() if gate else None,
+        validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer)
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples, fallback=Fallback(),
                         steering=Steering(share=steering_share) if steering_share else None, anchoring="auto",
@@ -95,15 +132,17 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
 
 def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: bool = False, pool_factor: int = 8,
               hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500, warmup_samples: int = 1000,
-              learning_rate: float = 1e-3, iso_sigma: float = 0.02, line_sigma: float = 0.1) -> Emitter:
+              learning_rate: float = 1e-3, iso_sigma: float = 0.02, line_sigma: float = 0.1,
+              surrogate: Any = None) -> Emitter:
     """The paper's M-QD (Algorithm 1): roll out the candidates whose predicted novelty exceeds `t_nov` or whose
     predicted quality improvement exceeds `t_qua` (`Threshold`); `budgeted`: instead rank `pool_factor` x the
-    population and roll out the best population (`Budgeted`). The model's settings: Table II."""
+    population and roll out the best population (`Budgeted`). The model's settings: Table II; `surrogate`: one's
+    own in place of the built-in model (its Table II settings then not read)."""
     if not isinstance(budgeted, bool):
         raise ValueError(f"mqd-paper: budgeted={budgeted!r} is invalid: expected a bool")
     rule = Budgeted(pool_factor, t_nov=t_nov) if budgeted else Threshold(t_nov=t_nov, t_qua=t_qua)
-    surrogate = Surrogate(hidden_size=hidden_size, batch_size=batch_size, num_batches=num_batches,
-                          learning_rate=learning_rate)
+    surrogate = surrogate if surrogate is not None else Surrogate(
+        hidden_size=hidden_size, batch_size=batch_size, num_batches=num_batches, learning_rate=learning_rate)
     return ModelEmitter(IsoLine(iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples)
 

@@ -42,6 +42,7 @@ from typing import Any, Protocol
 import jax
 import jax.numpy as jnp
 
+from mqd_jax.core.checks import shapes_of as _shapes
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.params import check_params_of, params_of
 from mqd_jax.core.repertoire import Repertoire
@@ -98,15 +99,32 @@ class Hooks:
 
     def fit(self, key: jax.Array, state: Any, repertoire: Repertoire, task: Task,
             params: Any) -> tuple[Any, jax.Array]:
-        state, loss = self.model.fit(key, state, repertoire, task, params)
-        return state, jnp.asarray(loss, jnp.float32)
+        """The model's, its state checked against the one it was given (structure, shapes, dtypes) and its loss a
+        real scalar: ValueError naming the model otherwise."""
+        new, loss = self.model.fit(key, state, repertoire, task, params)
+        if jax.tree.structure(new) != jax.tree.structure(state) or any(
+                jnp.shape(a) != jnp.shape(b) or jnp.result_type(a) != jnp.result_type(b)
+                for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(state), strict=True)):
+            raise ValueError(f"{_name(self.model)}.fit returned a state {_shapes(new)}; expected one of the structure, "
+                             f"shapes and dtypes it was given, {_shapes(state)} (init's)")
+        if jnp.shape(loss) != () or not jnp.issubdtype(jnp.result_type(loss), jnp.floating):
+            raise ValueError(f"{_name(self.model)}.fit returned a loss {_shapes(loss)}; expected a float scalar")
+        return new, jnp.asarray(loss, jnp.float32)
 
     def predict(self, state: Any, actions: jax.Array, task: Task) -> tuple[jax.Array, jax.Array]:
-        """As the model's, of actions [N, n] or of one action [n] (what steering and adaptation differentiate)."""
+        """As the model's, of actions [N, n] or of one action [n] (what steering and adaptation differentiate);
+        ValueError naming the model where it returns other shapes than behaviors [N, d] and qualities [N] or
+        other than floats."""
         if actions.ndim == 1:
-            behaviors, qualities = self.model.predict(state, actions[None], task)
+            behaviors, qualities = self.predict(state, actions[None], task)
             return behaviors[0], qualities[0]
-        return self.model.predict(state, actions, task)
+        out = self.model.predict(state, actions, task)
+        n, d = actions.shape[0], task.behavior_dim
+        if not (isinstance(out, tuple | list) and len(out) == 2 and jnp.shape(out[0]) == (n, d)
+                and jnp.shape(out[1]) == (n,) and all(jnp.issubdtype(jnp.result_type(x), jnp.floating) for x in out)):
+            raise ValueError(f"{_name(self.model)}.predict returned {_shapes(out)} for {n} actions; expected "
+                             f"behaviors float[{n}, {d}] and qualities float[{n}] (the task's {d} behavior dimensions)")
+        return out
 
     def featured(self, task: Task) -> bool:
         return False
@@ -118,11 +136,16 @@ class Hooks:
         return repertoire.actions[slots]
 
     def members(self, state: Any, actions: jax.Array, task: Task, inputs: jax.Array | None = None) -> jax.Array:
+        """The model's `members` (checked: float [E, N, d + 1]), else its `predict` as the one member."""
         own = getattr(self.model, "members", None)
-        if own is not None:
-            return own(state, actions, task)
-        behaviors, qualities = self.model.predict(state, actions, task)
-        return jnp.concatenate([behaviors, qualities[:, None]], axis=-1)[None]
+        if own is None:
+            behaviors, qualities = self.predict(state, actions, task)
+            return jnp.concatenate([behaviors, qualities[:, None]], axis=-1)[None]
+        out, want = own(state, actions, task), (actions.shape[0], task.behavior_dim + 1)
+        if jnp.ndim(out) != 3 or jnp.shape(out)[1:] != want or not jnp.issubdtype(jnp.result_type(out), jnp.floating):
+            raise ValueError(f"{_name(self.model)}.members returned {_shapes(out)}; expected float[E, {want[0]}, "
+                             f"{want[1]}] (each member's behaviors and quality)")
+        return out
 
     def overrule(self, state: Any, inputs: jax.Array, predictions: jax.Array, task: Task) -> jax.Array:
         return predictions
@@ -133,6 +156,10 @@ class Hooks:
     def observe(self, key: jax.Array, state: Any, actions: jax.Array, rollout: jax.Array, evaluated: Evaluated,
                 task: Task, params: Any, features: jax.Array | None = None) -> Any:
         return state
+
+
+def _name(part: Any) -> str:
+    return type(part).__name__
 
 
 def hooks(surrogate: Any) -> Any:
