@@ -42,6 +42,11 @@ def options(name: str) -> dict[str, Any]:
     return {p.name: p.default for p in parameters if p.name not in CONTEXT}
 
 
+def part_options(name: str) -> tuple[str, ...]:
+    """The options of the algorithm `name` that take a part (their default is None: the preset's own)."""
+    return tuple(o for o, default in options(name).items() if default is None)
+
+
 def is_part(value: Any) -> bool:
     """Whether an option's value is a part (an object such as a surrogate or a rule), not a plain setting."""
     return value is not None and not isinstance(value, str | int | float | bool | list | tuple | dict)
@@ -60,7 +65,7 @@ def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
             listed = ", ".join(f"{o}={d!r}" for o, d in known.items()) or "none"
             raise ValueError(f"algorithm_options: {name!r} takes no option {option!r}; its options: {listed}")
         default = known[option]
-        if default is None:
+        if option in part_options(name):
             if value is not None and not is_part(value):
                 raise ValueError(f"algorithm_options: {name}'s {option}={value!r} is invalid: expected a part "
                                  f"object, given in Python ({name}(... {option}=MyPart()) or Config(algorithm_options="

@@ -230,9 +230,8 @@ class Config:
             raise ValueError(f"a saved config of the task {task!r}, which is not registered here")
         if options:
             saved["task"] = registry.make(task, **options)
-        taken = algorithms.options(saved["algorithm"])
-        parts = {o: v for o, v in dict(saved.get("algorithm_options", {})).items()
-                 if o in taken and taken[o] is None and v is not None}
+        taken = algorithms.part_options(saved["algorithm"])
+        parts = {o: v for o, v in dict(saved.get("algorithm_options", {})).items() if o in taken and v is not None}
         if parts:
             raise ValueError(f"a saved config of {saved['algorithm']!r} with the parts {parts}, written as their repr: "
                              "a part object cannot be rebuilt from a file; build its Config in Python")

@@ -285,10 +285,11 @@ def _rounds(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, near_i: ja
 MIN_WINDOW = 64
 
 
-def _window_sizes(size: int) -> list[int]:
-    """The window lengths a band search over `size` sorted rows chooses from, ascending: MIN_WINDOW * 4^j up to
-    half of size, and size (each length is a copy of the search in the program)."""
-    return [*(MIN_WINDOW * 4**j for j in range(size.bit_length()) if 2 * MIN_WINDOW * 4**j <= size), size]
+def _window_sizes(size: int, narrowest: int) -> list[int]:
+    """The window lengths a search over `size` sorted rows chooses from, ascending: narrowest * 4^j up to half of
+    size, and size (each length is a copy of the search in the program): MIN_WINDOW for the skills' bands,
+    MIN_RUN for the runs of the candidates' grid cells."""
+    return [*(narrowest * 4**j for j in range(size.bit_length()) if 2 * narrowest * 4**j <= size), size]
 
 
 def _axis(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> jax.Array:
@@ -348,7 +349,7 @@ def _near_within(num_near: int, min_prefix: int, rep: Repertoire, behaviors: jax
             return _nearest_before(num_near, size, rep, behaviors)
         part = _prefix(rep, size, rep.capacity)
         order, lo, hi, widest = _bands(behaviors, ok, part.behaviors, part.valid, axis, t_dist)
-        return _on_prefix(_window_sizes(size), widest,
+        return _on_prefix(_window_sizes(size, MIN_WINDOW), widest,
                           lambda width, *a: neighbours.k_smallest_of(*_in_band(width, *a), num_near),
                           behaviors, part.behaviors, order, lo, hi)
 
@@ -388,8 +389,8 @@ def _parallel_rule(rep: Repertoire, behaviors: jax.Array, near_d: jax.Array, nea
         dists = jax.lax.optimization_barrier(jnp.where(earlier, d, jnp.inf))
         return _rounds(rep, behaviors, near_d, near_i, cols, dists, qualities, usable, t_dist)
 
-    widths = [*(MIN_RUN * 4**j for j in range(pop.bit_length()) if 2 * MIN_RUN * 4**j <= pop), pop]
-    return _on_prefix(widths, cells.longest, rule, rep, behaviors, near_d, near_i, qualities, usable, cells, t_dist)
+    return _on_prefix(_window_sizes(pop, MIN_RUN), cells.longest, rule, rep, behaviors, near_d, near_i, qualities,
+                      usable, cells, t_dist)
 
 
 def _prefix(tree: Repertoire, size: int, capacity: int) -> Repertoire:
