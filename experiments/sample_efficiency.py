@@ -110,7 +110,8 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     try:
         cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
         if name == "oracle":  # the preset's acquisition fed the true outcomes
-            oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1), fallback=None)
+            oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1),
+                                         parts=tuple(p for p in cfg.emitter.parts if p.name != "fallback"))
             cfg = dataclasses.replace(cfg, algorithm=oracle, algorithm_options={})
     except ValueError as error:
         raise SystemExit(f"{spec!r}: {error}") from None

@@ -10,9 +10,12 @@ from mqd_jax.core.run import Candidates, State, ask, generation, init, run_gener
 from mqd_jax.core.task import Task
 from mqd_jax.emitters import presets
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
+from mqd_jax.emitters.anchoring import Anchoring
 from mqd_jax.emitters.baselines import IsoLine, Uniform
 from mqd_jax.emitters.imagination import Imagination
-from mqd_jax.emitters.model_emitter import Fallback, ModelEmitter
+from mqd_jax.emitters.model_emitter import ModelEmitter
+from mqd_jax.emitters.parts import Part, Share
+from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.emitters.steering import Steering
 from mqd_jax.emitters.step_aside import StepAside
 from mqd_jax.surrogate.surrogate import Surrogate
@@ -22,6 +25,7 @@ from mqd_jax.version import __version__
 __all__ = [
            "Adapted",
            "AddStatus",
+           "Anchoring",
            "Budgeted",
            "Candidates",
            "Config",
@@ -33,7 +37,9 @@ __all__ = [
            "IsoLine",
            "ModelEmitter",
            "Params",
+           "Part",
            "Proposal",
+           "Share",
            "State",
            "Steering",
            "StepAside",

@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from mqd_jax import Config, IsoLine, ModelEmitter, Params, Steering, run_mqd
+from mqd_jax import Anchoring, Config, IsoLine, ModelEmitter, Params, Steering, run_mqd
 from mqd_jax.core import algorithms
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.emitter import Evaluated
@@ -201,13 +201,14 @@ def anchored(emitter, **changes):
     return dataclasses.replace(emitter, **changes)
 
 
-NO_STATE = ModelEmitterState(surrogate=SurrogateState(model=None), inner=(), evaluations=jnp.int32(0))
+NO_STATE = ModelEmitterState(surrogate=SurrogateState(model=None), inner=(), evaluations=jnp.int32(0),
+                             parts={"anchoring": ()})
 
 
 def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
-    emitter = knowing(Diverse(), 1, anchoring="always", anchor="nearest")
+    emitter = knowing(Diverse(), 1, parts=(Anchoring("always", "nearest"),))
     got = emitter.judge(NO_STATE, pool, rep, linear_task)
     for i, a in enumerate(np.asarray(pool)):
         j = int(np.argmin([np.sum((a - r) ** 2) for r in np.asarray(rep.actions[:2])]))  # action box [-1, 1]: x1
@@ -220,7 +221,7 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     # Anchored differences cancel the members' offsets: they agree (spread 0); not anchored they disagree by 1/2
     # on each behavior axis around the mean.
     np.testing.assert_allclose(got.spread, 0.0, atol=1e-6)
-    plain = anchored(emitter, anchoring="none").judge(NO_STATE, pool, rep, linear_task)
+    plain = anchored(emitter, parts=()).judge(NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(plain.behaviors, np.asarray(pool)[:, :2] + [0.5, -0.5], rtol=1e-6)
     np.testing.assert_allclose(plain.spread, 0.5, rtol=1e-6)
     # An empty repertoire has nothing to anchor at: the plain prediction.
@@ -236,7 +237,7 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     # binary fractions, so that the first two rows' ties (slots 0 and 1; 0 and 3) are exact.
     pool = jnp.array([[0.125, 0.5, 0.0], [0.0, 0.75, 0.0], [-0.375, 1.0, 0.0], [0.25, -0.25, 0.0],
                       [-0.5, 0.25, 0.0]])
-    emitter = knowing(Diverse(2), 3, anchoring="none")
+    emitter = knowing(Diverse(2), 3)
     got = emitter.judge(NO_STATE, pool, rep, linear_task)
     b = np.asarray(pool)[:, :2] + [0.5, -0.5]
     d = np.sqrt(((b[:, None] - np.asarray(rep.behaviors[:4])[None]) ** 2).sum(-1))
@@ -250,9 +251,9 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     state = state.replace(evaluations=jnp.int32(emitter.warmup_samples))  # past warm-up: the rule chooses
     proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task,
                                Params(jnp.float32(0.02), emitter.default_params()), 3)
-    kept = np.sqrt(((np.asarray(proposal.info["predicted_behaviors"])[:, None] - np.asarray(rep.behaviors[:4])[None])
+    kept = np.sqrt(((np.asarray(proposal.info.predicted_behaviors)[:, None] - np.asarray(rep.behaviors[:4])[None])
                     ** 2).sum(-1)).min(1)
-    np.testing.assert_allclose(proposal.info["predicted_distance"], kept, rtol=1e-6)
+    np.testing.assert_allclose(proposal.info.predicted_distance, kept, rtol=1e-6)
     empty = emitter.judge(NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
     assert np.all(np.isinf(empty.distance)) and np.all(np.asarray(empty.nearest_quality) == 0.0)
 
@@ -260,8 +261,8 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
 def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
-    emitter = knowing(Diverse(), 1, anchoring="always")
-    assert emitter.anchor == "parent"
+    emitter = knowing(Diverse(), 1, parts=(Anchoring("always"),))
+    assert emitter.part("anchoring").anchor == "parent"
     # Row 0's parent is the skill farther from it in action space (slot 1), row 1's slot 0; row 2 has none.
     got = emitter.judge(NO_STATE, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
     for i, j in ((0, 1), (1, 0)):
@@ -269,7 +270,7 @@ def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
         # The members' offsets cancel: b(parent) + (a - parent) on the behavior axes, q(parent) + a2 - p2.
         np.testing.assert_allclose(got.behaviors[i], np.asarray(rep.behaviors[j]) + (a - p)[:2], rtol=1e-6)
         np.testing.assert_allclose(got.qualities[i], float(rep.qualities[j]) + a[2] - p[2], rtol=1e-6)
-    plain = anchored(emitter, anchoring="none").judge(NO_STATE, pool, rep, linear_task)
+    plain = anchored(emitter, parts=()).judge(NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(got.behaviors[2], plain.behaviors[2])  # no parent: the plain prediction
     # The parents' novelty, as the repertoire holds it; NaN without a parent, None where no parents are named.
     novel = rep.replace(novelty=rep.novelty.at[:2].set(jnp.array([0.25, 0.75])))
@@ -277,13 +278,13 @@ def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
                                   .parent_novelty, [0.75, 0.25, np.nan])
     assert emitter.judge(NO_STATE, pool, novel, linear_task).parent_novelty is None
     # An inner emitter that names no parents: anchored at the nearest skill, as anchor="nearest".
-    nearest = anchored(emitter, anchor="nearest").judge(NO_STATE, pool, rep, linear_task)
+    nearest = anchored(emitter, parts=(Anchoring("always", "nearest"),)).judge(NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(emitter.judge(NO_STATE, pool, rep, linear_task).behaviors, nearest.behaviors)
     assert not np.allclose(got.behaviors[:2], nearest.behaviors[:2])
-    with pytest.raises(ValueError, match=r"ModelEmitter\.anchoring='nearest' is invalid"):
-        ModelEmitter(IsoLine(), anchoring="nearest")
-    with pytest.raises(ValueError, match=r"ModelEmitter\.anchor="):
-        ModelEmitter(IsoLine(), anchor="first")
+    with pytest.raises(ValueError, match=r"Anchoring\.mode='nearest' is invalid"):
+        Anchoring("nearest")
+    with pytest.raises(ValueError, match=r"Anchoring\.anchor="):
+        Anchoring(anchor="first")
 
 
 def test_greedy_diverse_by_hand():
@@ -465,22 +466,22 @@ def test_fallback_pursues_the_side_that_opens_more_niches():
     from_model = jnp.array([True, True, False, False])
     status = jnp.array([added, added, rejected, added])
     ev = Evaluated(jnp.zeros((4, 2)), jnp.zeros(4), jnp.ones(4, bool), status)
-    state = fallback.update(state, from_model, ev)
+    state = fallback.learn(state, from_model, None, ev)
     # Rates: model 2/2, inner 1/2; first averages are the rates; the share moves half way to 0.9.
     np.testing.assert_allclose(state.success, [1.0, 0.5])
     assert float(state.share) == pytest.approx(0.7)
     worse = ev.replace(status=jnp.array([rejected, rejected, added, added]))
-    state = fallback.update(state, from_model, worse)
+    state = fallback.learn(state, from_model, None, worse)
     np.testing.assert_allclose(state.success, [0.5, 0.75])  # 0.5 * old + 0.5 * (0, 1)
     assert float(state.share) == pytest.approx(0.7 + 0.5 * (0.1 - 0.7))
     # A side with no rollouts keeps its average.
     skipped = ev.replace(status=jnp.array([0, 0, added, added]))
-    assert float(fallback.update(state, from_model, skipped).success[0]) == pytest.approx(0.5)
+    assert float(fallback.learn(state, from_model, None, skipped).success[0]) == pytest.approx(0.5)
     for kw in (dict(floor=0.6), dict(rate=1.5), dict(floor=-0.1)):
         with pytest.raises(ValueError, match=r"Fallback\."):
             Fallback(**kw)
-    with pytest.raises(ValueError, match=r"ModelEmitter\.fallback="):
-        ModelEmitter(IsoLine(), Threshold(), fallback=Fallback())
+    with pytest.raises(ValueError, match=r"ModelEmitter\.parts: Fallback\(.*\) needs a ranking acquisition rule"):
+        ModelEmitter(IsoLine(), Threshold(), parts=(Fallback(),))
     assert isinstance(Fallback().init(), FallbackState)
 
 
@@ -504,16 +505,15 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     assert cfg.emitter == ModelEmitter(
         IsoLine(scales=(1.0, 2.0)), Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1),
         Surrogate(hidden_size=32, ensemble_size=2, batch_size=16, num_batches=5, features=True, gate=Gate()),
-        k=cfg.k, warmup_samples=48, fallback=Fallback(), steering=Steering(share=0.3), anchoring="auto",
-        anchor="parent")
+        k=cfg.k, warmup_samples=48, parts=(Steering(share=0.3), Anchoring("auto", "parent"), Fallback()))
 
     def changed(**options):
         return dataclasses.replace(cfg, algorithm_options={**cfg.options, **options}).emitter
 
     assert changed(wide_scale=1.0).inner == IsoLine()  # version 0.8's
     assert changed(wide_scale=3.0).inner == IsoLine(scales=(1.0, 3.0))
-    assert changed(anchor="nearest").anchor == "nearest"  # version 0.5's
-    assert changed(steering_share=0.0).steering is None  # version 0.4's "mqd"
+    assert changed(anchor="nearest").part("anchoring").anchor == "nearest"  # version 0.5's
+    assert changed(steering_share=0.0).part("steering") is None  # version 0.4's "mqd"
     assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
     assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
     assert not changed(features=False).surrogate.features and changed(gate=False).surrogate.gate is None  # 0.10's
@@ -577,7 +577,7 @@ def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor
             old = {**{k: then[k] for k in added[version:]}, "features": False, "gate": False} \
                 if algorithm == "mqd" else {}
             assert Config.from_dict(saved) == Config(algorithm=algorithm, algorithm_options=old), (algorithm, missing)
-    assert Config(algorithm="mqd").emitter.steering == Steering(0.25)
+    assert Config(algorithm="mqd").emitter.part("steering") == Steering(0.25)
     # The preset's rule reads its quality share.
     assert Config(algorithm="mqd").emitter.acquisition.quality_share == 0.1
     assert Config(algorithm="mqd", algorithm_options={"quality_share": 0.3}).emitter.acquisition.quality_share == 0.3

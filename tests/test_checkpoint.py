@@ -121,14 +121,14 @@ def uninterrupted_paper():
 def _as_format_4(body):
     """A format-6 checkpoint body of the paper's filter as format 4 wrote it: the preset named "mqd", no
     `ensemble_size` or `optimism` in the config; one network without a member axis; no `rollouts`,
-    `fallback` or `anchor_errors` in the model emitter's state."""
+    chain's `parts` in the model emitter's state."""
     flat = {**{k: v for k, v in body["config"].items() if k != "algorithm_options"},
             **body["config"]["algorithm_options"]}  # before version 0.10 the preset's settings were fields
     config = {k: v for k, v in flat.items() if k not in ("ensemble_size", "optimism")}
     config.update(algorithm="mqd")
     flat = body["state"]["emitter"]  # format 6 holds the model in the surrogate's state; formats 4-5 beside the rest
     flat = {**{k: v for k, v in flat.items() if k != "surrogate"}, **flat["surrogate"]}
-    emitter = {k: v for k, v in flat.items() if k not in ("rollouts", "fallback", "anchor_errors")}
+    emitter = {k: v for k, v in flat.items() if k not in ("rollouts", "parts")}
     model = dict(emitter["model"])
     squeeze = lambda tree: jax.tree.map(lambda x: x[0], tree)  # noqa: E731
     adam = dict(model["opt_state"]["inner_state"]["0"])

@@ -50,7 +50,7 @@ def test_invalid_values_name_the_field(field, value):
     ("mqd", "hidden_size", True, "hidden_size=True is invalid: expected an int"),
     ("qd", "iso_sigma", -0.1, "IsoLine.iso_sigma=-0.1"), ("qd", "line_sigma", float("inf"), "IsoLine.line_sigma=inf"),
     ("mqd", "pool_factor", 0, "Diverse.pool_factor=0"), ("mqd", "steering_share", 1.0, "Steering.share=1.0"),
-    ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "ModelEmitter.anchor='first'"),
+    ("mqd", "steering_share", -0.1, "Steering.share=-0.1"), ("mqd", "anchor", "first", "Anchoring.anchor='first'"),
     ("mqd", "parent_weight", -1.0, "Diverse.parent_weight=-1.0"), ("mqd", "parent_weight", float("nan"),
                                                                    "Diverse.parent_weight=nan"),
     ("mqd", "quality_share", 1.5, "Diverse.quality_share=1.5"), ("mqd", "wide_scale", 0.0, "IsoLine.scales="),
@@ -77,7 +77,7 @@ def test_options_equal_to_the_defaults_are_the_same_config():
 def test_mqd_refuses_a_steering_share_its_pool_cannot_hold():
     # A pool of 1 x 100: steering 25 would leave the rule 75 of its 100 rollouts; 2 x 2 with 0.1 steers no row.
     for kw in (dict(pool_factor=1), dict(pool_factor=2, steering_share=0.1), dict(pool_factor=2, steering_share=0.6)):
-        with pytest.raises(ValueError, match=r"ModelEmitter.steering=.* steers \d+ of a pool of \d+: expected at "
+        with pytest.raises(ValueError, match=r"ModelEmitter: Steering\(.*\) steers \d+ of a pool of \d+: expected at "
                                              r"least 1, leaving the inner emitter"):
             Config(algorithm="mqd", population_size=2 if kw.get("steering_share") == 0.1 else 100,
                    algorithm_options={**kw, "warmup_samples": 0})

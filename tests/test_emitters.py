@@ -125,7 +125,7 @@ def test_bad_compositions_are_refused_at_construction():
         Surrogate(hidden_size=0)
     with pytest.raises(ValueError, match=r"ModelEmitter\.surrogate=.* expected a surrogate"):
         ModelEmitter(IsoLine(), surrogate=Validity())
-    clash = r"metrics \['discarded', 'model_loss', 'opener_auc', 'prediction_error'\] clash"
+    clash = r"metrics \['discarded', 'model_loss', 'opener_auc', 'prediction_error'\] are declared by more than one"
     with pytest.raises(ValueError, match=clash):
         ModelEmitter(ModelEmitter(IsoLine()))
     with pytest.raises(ValueError, match=r"Budgeted\.pool_factor=0"):

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import Diverse, Fallback, Imagination, IsoLine, Params, Surrogate, Validity, run_mqd
+from mqd_jax import Anchoring, Fallback, Imagination, IsoLine, ModelEmitter, Params, Steering, Surrogate, run_mqd
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.emitters.imagination import survivors
@@ -42,7 +42,7 @@ def test_survivors_by_hand():
 def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force(linear_task, tiny):
     start = jax.random.uniform(jax.random.PRNGKey(3), (12, 3), minval=-1.0, maxval=1.0)
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), start, linear_task, jnp.ones(12, bool))
-    emitter = Imagination(IsoLine(), surrogate=_Perfect(), k=K, generations=2)
+    emitter = ModelEmitter(IsoLine(), Imagination(generations=2), _Perfect(), k=K)
     params = Params(jnp.float32(T_DIST), emitter.default_params())
     state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     key, num = jax.random.PRNGKey(7), 10
@@ -65,12 +65,12 @@ def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force
     assert 0 < keep.sum() < 2 * num  # the case tests both kinds
     np.testing.assert_allclose(proposal.actions, actions[order[:num]], rtol=1e-5, atol=1e-6)  # jit vs eager
     np.testing.assert_array_equal(proposal.rollout, keep[order[:num]])
-    assert int(proposal.info["discarded"]) == num - int(keep[order[:num]].sum())
+    assert int(proposal.info.discarded) == num - int(keep[order[:num]].sum())
 
 
 def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_task, tiny):
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), jnp.zeros((1, 3)), linear_task, jnp.ones(1, bool))
-    emitter = Imagination(IsoLine(), surrogate=_Perfect(), k=K, generations=3, warmup_samples=100)
+    emitter = ModelEmitter(IsoLine(), Imagination(generations=3), _Perfect(), k=K, warmup_samples=100)
     params = Params(jnp.float32(0.02), emitter.default_params())
     key = jax.random.PRNGKey(5)
     proposal = emitter.propose(key, emitter.init(key, linear_task, 64), rep, linear_task, params, 6)
@@ -79,19 +79,23 @@ def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_
     assert bool(proposal.rollout.all())
 
 
-@pytest.mark.parametrize("kw, field", [({"generations": 0}, "generations"),
-                                       ({"generations": 2.0}, "generations"),
-                                       ({"fallback": Fallback(), "acquisition": Diverse()}, "fallback"),
-                                       ({"surrogate": Surrogate(validity=Validity()), "acquisition": Diverse()},
-                                        "surrogate.validity")])
-def test_imagination_is_validated(kw, field):
-    with pytest.raises(ValueError, match=f"Imagination.{field}="):
-        Imagination(IsoLine(), **kw)
+@pytest.mark.parametrize("generations", [0, 2.0])
+def test_imagination_is_validated(generations):
+    with pytest.raises(ValueError, match=r"Imagination\.generations="):
+        Imagination(generations)
+
+
+@pytest.mark.parametrize("part, why", [(Fallback(), "needs a ranking acquisition rule"),
+                                       (Steering(), "needs a ranking acquisition rule")])
+def test_a_part_that_needs_the_pool_or_a_ranking_is_refused_with_imagination(part, why):
+    """Its rows are not a ranking (a share), and it draws its own pools (steering), both named."""
+    with pytest.raises(ValueError, match=f"{type(part).__name__}.*{why}"):
+        ModelEmitter(IsoLine(), Imagination(), parts=(part,))
 
 
 def test_a_run_rolls_out_at_most_the_population_and_counts_the_rest_as_discarded(tiny):
-    cfg = tiny(task="obstacle2d", algorithm=Imagination(IsoLine(), surrogate=Surrogate(num_batches=2),
-                                                        warmup_samples=16, anchoring="auto"))
+    cfg = tiny(task="obstacle2d", algorithm=ModelEmitter(IsoLine(), Imagination(), Surrogate(num_batches=2),
+                                                         warmup_samples=16, parts=(Anchoring("auto"),)))
     _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     assert np.all(metrics["evaluations"] + metrics["discarded"] == cfg.population_size)
     assert metrics["evaluations"][0] == cfg.population_size  # warm-up: the first 16 rollouts

@@ -10,6 +10,7 @@ import pytest
 
 import mqd_jax
 from mqd_jax import (
+    Anchoring,
     Config,
     Diverse,
     Fallback,
@@ -23,6 +24,7 @@ from mqd_jax import (
 )
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
+from mqd_jax.emitters.parts import View
 from mqd_jax.surrogate import model
 
 T_DIST = 0.02
@@ -162,9 +164,15 @@ def test_bad_steering_is_refused(kwargs, match):
 
 def test_steering_needs_a_ranking_rule_and_is_not_imagined():
     with pytest.raises(ValueError, match="ranking acquisition rule"):
-        ModelEmitter(IsoLine(), Threshold(), steering=Steering())
-    with pytest.raises(ValueError, match=r"Imagination\.steering"):
-        Imagination(IsoLine(), Diverse(), steering=Steering())
+        ModelEmitter(IsoLine(), Threshold(), parts=(Steering(),))
+    with pytest.raises(ValueError, match=r"Steering\(.*\) needs a ranking acquisition rule"):
+        ModelEmitter(IsoLine(), Imagination(), parts=(Steering(),))
+
+
+def steered_by(emitter, key, state, pool, rep, task, params, num, warm_up):
+    """The pool as the emitter's steering part's pool stage leaves it, and which rows it steered."""
+    view = View(emitter.model, state.surrogate, rep, task, params, num, warm_up)
+    return emitter.part("steering").pool(key, state.parts["steering"], pool, view)
 
 
 def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
@@ -172,7 +180,7 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     Jacobian was asked for (a small step, where the network is nearly linear); the first rows are the inner
     emitter's; during warm-up the pool is the inner emitter's."""
     emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8), warmup_samples=10,
-                           steering=Steering(share=0.5, step_low=0.05, step_high=0.05))
+                           parts=(Steering(share=0.5, step_low=0.05, step_high=0.05),))
     state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     state = state.replace(surrogate=state.surrogate.replace(model=model.init(jax.random.PRNGKey(3), 8, linear_task)))
     predict = lambda actions: emitter.surrogate.predict(state.surrogate, actions, linear_task)  # noqa: E731
@@ -180,7 +188,7 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     params, key = Config().params(), jax.random.PRNGKey(4)
     pool = emitter.inner.propose(key, state.inner, rep, linear_task, params, 40)
     for warm_up, steered_rows in ((True, 0), (False, 20)):
-        got, steered = emitter._steered(jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
+        got, steered = steered_by(emitter, jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
                                         jnp.bool_(warm_up))
         np.testing.assert_array_equal(np.asarray(steered), np.arange(40) >= 40 - steered_rows)
         np.testing.assert_array_equal(got.actions[:40 - steered_rows], pool.actions[:40 - steered_rows])
@@ -188,11 +196,11 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     moved = predict(children)[0] - predict(rep.actions[:1])[0]
     np.testing.assert_allclose(np.linalg.norm(np.asarray(moved), axis=1), 0.05 * float(params.t_dist), rtol=0.05)
     with pytest.raises(ValueError, match="leaving the inner emitter"):
-        emitter._steered(key, state, pool, rep, linear_task, params, 25, jnp.bool_(False))
+        steered_by(emitter, key, state, pool, rep, linear_task, params, 25, jnp.bool_(False))
     # With a quality step (through the network's own quality gradient) the same children also climb the
     # predicted quality, while their predicted behavior still moves by the asked step.
-    climbing = dataclasses.replace(emitter, steering=dataclasses.replace(emitter.steering, quality=1.0))
-    climbed = climbing._steered(jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
+    climbing = dataclasses.replace(emitter, parts=(dataclasses.replace(emitter.part("steering"), quality=1.0),))
+    climbed = steered_by(climbing, jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
                                 jnp.bool_(False))[0].actions[20:]
     behaviors, qualities = predict(climbed)
     moved = behaviors - predict(rep.actions[:1])[0]
@@ -213,15 +221,16 @@ def test_a_child_whose_jacobian_is_not_finite_keeps_the_inner_candidate(linear_t
     task = Masked(linear_task.action_low, linear_task.action_high, linear_task.behavior_low,
                   linear_task.behavior_high)
     emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8, features=True),
-                           steering=Steering(share=0.5))
+                           parts=(Steering(share=0.5),))
     state = emitter.init(jax.random.PRNGKey(0), task, 64)
     rep = skills_at(task, [[-0.5, 0.0, 0.0], [0.5, 0.3, 0.1]])  # the first: a masked norm at 0
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
     pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, task, params.part(params.emitter.inner),
                                  400)
-    got, steered = emitter._steered(jax.random.PRNGKey(2), state, pool, rep, task, params, 100, jnp.bool_(False))
+    got, steered = steered_by(emitter, jax.random.PRNGKey(2), state, pool, rep, task, params, 100, jnp.bool_(False))
     # The steering parents do not depend on the Jacobian: the same key with a finite one draws them.
-    parents = np.asarray(emitter.steering.steer(jax.random.PRNGKey(2), rep, linear_jacobian, task, params, 200)[1])
+    parents = np.asarray(emitter.part("steering").steer(jax.random.fold_in(jax.random.PRNGKey(2), 2), rep,
+                                                           linear_jacobian, task, params, 200)[1])
     assert 0 < (parents == 0).sum() < 200  # both parents were drawn
     assert np.isfinite(np.asarray(got.actions)).all()
     np.testing.assert_array_equal(np.asarray(steered), np.r_[np.zeros(200, bool), parents == 1])
@@ -235,14 +244,14 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     the parents a ModelEmitter's proposal names (IsoLine's first parents, the steered rows' steering parents,
     kept with the rows the rule chose) hold exactly the proposed actions."""
     emitter = ModelEmitter(IsoLine(iso_sigma=0.0, line_sigma=0.0), Diverse(pool_factor=4),
-                           Surrogate(hidden_size=8), steering=Steering(share=0.5, step="mutation", iso_sigma=0.0),
-                           anchoring="always")
+                           Surrogate(hidden_size=8), parts=(Steering(share=0.5, step="mutation", iso_sigma=0.0),
+                                                            Anchoring("always")))
     state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     rep = skills_at(linear_task, [[0.1 * i, -0.05 * i, 0.02 * i * i] for i in range(8)])
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
     inner = params.part(params.emitter.inner)
     pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, linear_task, inner, 48)
-    steered_pool, steered = emitter._steered(jax.random.PRNGKey(2), state, pool, rep, linear_task, params, 12,
+    steered_pool, steered = steered_by(emitter, jax.random.PRNGKey(2), state, pool, rep, linear_task, params, 12,
                                              jnp.bool_(False))
     assert steered.sum() == 24 and (np.asarray(steered_pool.parents) >= 0).all()
     np.testing.assert_array_equal(steered_pool.actions, np.asarray(rep.actions)[np.asarray(steered_pool.parents)])
@@ -257,7 +266,7 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
 
 def test_a_steered_run_reports_its_steered_rollouts(tiny):
     steered = ModelEmitter(IsoLine(), Diverse(), Surrogate(hidden_size=8, num_batches=2), warmup_samples=16,
-                           steering=Steering())
+                           parts=(Steering(),))
     cfg = tiny(algorithm=steered, max_generations=4)
     _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     count = np.asarray(metrics["steered"])
@@ -268,7 +277,7 @@ def test_a_steered_run_reports_its_steered_rollouts(tiny):
 def test_a_steering_pursuit_moves_its_share_by_the_pursuit_rule(tiny):
     pursuit = Fallback(floor=0.1, rate=0.2)
     steered = ModelEmitter(IsoLine(), Diverse(), Surrogate(hidden_size=8, num_batches=2), warmup_samples=16,
-                           steering=Steering(share=0.5, pursuit=pursuit))
+                           parts=(Steering(share=0.5, pursuit=pursuit),))
     cfg = tiny(algorithm=steered, max_generations=6)
     _, metrics = run_mqd(jax.random.PRNGKey(1), cfg)
     share, count = np.asarray(metrics["steering_share"]), np.asarray(metrics["steered"])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mqd_jax import Diverse, Evaluated, IsoLine, ModelEmitter, Params, Surrogate, Task, Threshold, run_mqd
-from mqd_jax.emitters.step_aside import StepAside, explained
+from mqd_jax.emitters.step_aside import StepAside, StepAsideState, explained
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -35,34 +35,34 @@ def test_the_skill_is_an_average_of_the_explained_variance_by_hand():
     rule = StepAside(margin=0.1, rate=0.5)
     state = rule.init()
     assert bool(rule.trusts(state))  # nothing measured yet
-    state = rule.update(state, jnp.float32(jnp.nan))
+    state = rule.averaged(state, jnp.float32(jnp.nan))
     assert np.isnan(float(state.skill))  # a generation without a measure changes nothing
-    state = rule.update(state, jnp.float32(0.9))
+    state = rule.averaged(state, jnp.float32(0.9))
     assert float(state.skill) == pytest.approx(0.9) and bool(rule.trusts(state))
-    state = rule.update(state, jnp.float32(-0.5))
+    state = rule.averaged(state, jnp.float32(-0.5))
     assert float(state.skill) == pytest.approx(0.2) and bool(rule.trusts(state))
-    state = rule.update(state, jnp.float32(-0.1))
+    state = rule.averaged(state, jnp.float32(-0.1))
     assert float(state.skill) == pytest.approx(0.05) and not bool(rule.trusts(state))
     with pytest.raises(ValueError, match=r"StepAside\.margin=2 is invalid"):
         StepAside(margin=2)
-    with pytest.raises(ValueError, match=r"ModelEmitter\.step_aside=.* with a ranking acquisition rule"):
-        ModelEmitter(IsoLine(), Threshold(), step_aside=StepAside())
+    with pytest.raises(ValueError, match=r"StepAside\(.*\) needs a ranking acquisition rule"):
+        ModelEmitter(IsoLine(), Threshold(), parts=(StepAside(),))
 
 
 def test_a_model_at_chance_rolls_out_the_inner_emitters_first_candidates(linear_task):
-    emitter = ModelEmitter(IsoLine(), Diverse(4), Surrogate(num_batches=2), step_aside=StepAside())
+    emitter = ModelEmitter(IsoLine(), Diverse(4), Surrogate(num_batches=2), parts=(StepAside(),))
     state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
     key, params = jax.random.PRNGKey(1), Params(jnp.float32(0.02), emitter.default_params())
     actions = jax.random.uniform(jax.random.PRNGKey(2), (20, 3), minval=-1.0, maxval=1.0)
     rep = _skills(linear_task, actions)
     pool = IsoLine().propose(key, (), rep, linear_task, Params(jnp.float32(0.02), IsoLine().default_params()), 32)
-    at_chance = emitter.propose(key, state.replace(step_aside=state.step_aside.replace(skill=jnp.float32(0.02))),
+    at_chance = emitter.propose(key, state.replace(parts={"step_aside": StepAsideState(jnp.float32(0.02))}),
                                 rep, linear_task, params, 8)
     np.testing.assert_array_equal(at_chance.actions, pool.actions[:8])
-    assert not np.asarray(at_chance.info["from_model"]).any()
-    skilled = emitter.propose(key, state.replace(step_aside=state.step_aside.replace(skill=jnp.float32(0.8))),
+    assert not np.asarray(at_chance.info.from_model).any()
+    skilled = emitter.propose(key, state.replace(parts={"step_aside": StepAsideState(jnp.float32(0.8))}),
                               rep, linear_task, params, 8)
-    assert np.asarray(skilled.info["from_model"]).all()
+    assert np.asarray(skilled.info.from_model).all()
     assert not np.array_equal(skilled.actions, pool.actions[:8])  # the rule's choice
 
 
@@ -80,7 +80,7 @@ def _skills(task, actions):
 def test_on_a_task_no_model_can_predict_the_emitter_steps_aside(tiny):
     task = Hashed((-1.0,) * 3, (1.0,) * 3, (0.0, 0.0), (1.0, 1.0))
     emitter = ModelEmitter(IsoLine(), Diverse(4), Surrogate(num_batches=20), warmup_samples=64,
-                           step_aside=StepAside())
+                           parts=(StepAside(),))
     _, m = run_mqd(jax.random.PRNGKey(0), tiny(task=task, algorithm=emitter, population_size=32,
                                                 max_generations=16, t_dist=0.05))
     skill, share = np.asarray(m["model_skill"]), np.asarray(m["model_share"])

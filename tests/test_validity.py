@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mqd_jax import IsoLine, ModelEmitter, Params, Steering, Surrogate, Task, Validity, run_mqd
+from mqd_jax import Anchoring, IsoLine, ModelEmitter, Params, Steering, Surrogate, Task, Validity, run_mqd
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, ranking
 from mqd_jax.emitters.model_emitter import auc
 from mqd_jax.emitters.pursuit import Fallback
@@ -91,7 +91,7 @@ def test_the_rules_put_likely_unusable_candidates_after_the_others_by_hand():
 
 def composed(validity):
     return ModelEmitter(IsoLine(), Diverse(3), Surrogate(num_batches=5, validity=validity), warmup_samples=32,
-                        fallback=Fallback(), steering=Steering(share=0.3), anchoring="auto")
+                        parts=(Steering(share=0.3), Anchoring("auto"), Fallback()))
 
 
 @pytest.mark.fusion_emitters  # two programs (with and without the classifier) agree bit for bit

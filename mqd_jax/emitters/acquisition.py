@@ -88,6 +88,11 @@ class Judged:
       validity: [N] the probability of a usable rollout (`mqd_jax.surrogate.validity`), or None (all judged usable).
       parent_novelty: [N] the repertoire's novelty of each candidate's parent (the skill it was varied from; NaN
         for a candidate without one), or None where the inner emitter names no parents.
+      members: [E, N, d + 1] each member's predicted behaviors and quality (an ensemble's E members; E = 1 for a
+        single network), as the chain's predict stages leave them: what a rule that samples a member (Thompson
+        sampling) reads. None where whoever judged did not say.
+      warm_up: bool scalar, the emitter is still warming up (its rule's choice is not used this generation,
+        and the model has not trained), or None where whoever judged did not say.
     """
 
     behaviors: jax.Array
@@ -100,6 +105,8 @@ class Judged:
     neighbours: jax.Array | None = None
     validity: jax.Array | None = None
     parent_novelty: jax.Array | None = None
+    members: jax.Array | None = None
+    warm_up: jax.Array | None = None
 
     @property
     def plausible(self) -> jax.Array:

@@ -6,8 +6,8 @@ a gradient transformation).
     mqd(pool_factor=8, optimism=1.0, ..., surrogate=None, rule=None)
                                                           -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
                                                                           Diverse(...), Surrogate(features, gate),
-                                                                          fallback=Fallback(), steering=Steering(...),
-                                                                          anchoring="auto")
+                                                                          parts=(Steering(...), Anchoring("auto"),
+                                                                                 Fallback()))
     mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua),
                                                                           Surrogate())
                                                              (or Budgeted(pool_factor) when budgeted)
@@ -29,8 +29,10 @@ from typing import Any
 from mqd_jax.core import algorithms
 from mqd_jax.core.emitter import Emitter
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
+from mqd_jax.emitters.anchoring import Anchoring
 from mqd_jax.emitters.baselines import IsoLine, Uniform
-from mqd_jax.emitters.model_emitter import Fallback, ModelEmitter
+from mqd_jax.emitters.model_emitter import ModelEmitter
+from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.emitters.steering import Steering
 from mqd_jax.emitters.step_aside import StepAside
 from mqd_jax.surrogate.gate import Gate
@@ -124,10 +126,10 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size, num_batches=num_batches,
         learning_rate=learning_rate, features=features, gate=Gate() if gate else None,
         validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer)
+    chain = ((Steering(share=steering_share),) if steering_share else ()) + (
+        Anchoring("auto", anchor), Fallback()) + ((StepAside(),) if step_aside else ())
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
-                        warmup_samples=warmup_samples, fallback=Fallback(),
-                        steering=Steering(share=steering_share) if steering_share else None, anchoring="auto",
-                        anchor=anchor, step_aside=StepAside() if step_aside else None)
+                        warmup_samples=warmup_samples, parts=chain)
 
 
 def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: bool = False, pool_factor: int = 8,

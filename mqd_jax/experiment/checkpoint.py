@@ -16,7 +16,9 @@ M-QD's model outside the emitter's state; 1 to 4 with one network where the
 model is now an ensemble; 1 to 5 with the model beside the emitter's other
 parts where its surrogate now holds it; 1 to 6 without a gate; 1 to 7 without the features the repertoire
 keeps per skill, computed from the saved actions; 1 to 8 with anchoring's errors in the surrogate's state
-where the model emitter now holds them, and no acquisition rule's state) still load.
+where the model emitter now holds them, and no acquisition rule's state; 1 to 9 with the model emitter's
+options (fallback, steering, step aside, anchoring's errors) as fields of its state, where its chain's parts
+now hold theirs) still load.
 
 Keys must be raw uint32 keys (`jax.random.PRNGKey`), as everywhere in mqd-jax. A batch
 of runs (`mqd_jax.experiment.sweep`) saves and loads the same way, with keys [S, 2] and
@@ -44,7 +46,7 @@ from mqd_jax.experiment import folders
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
-FORMAT = 9
+FORMAT = 10
 # The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`), and the gate
 # format 7 added there (a fresh run's, where an older format's state is completed from one).
 _SURROGATE = ("model", "rollouts", "anchor_errors", "validity", "gate")
@@ -175,6 +177,22 @@ def _from_format_8(state: dict[str, Any]) -> dict[str, Any]:
                                  "step_aside": emitter.get("step_aside", {})}}
 
 
+# Format 9's model emitter state fields that format 10 moved into its chain's parts' states, by part name.
+_PARTS = {"fallback": "fallback", "steering": "steering", "step_aside": "step_aside", "anchor_errors": "anchoring"}
+
+
+def _from_format_9(state: dict[str, Any]) -> dict[str, Any]:
+    """Formats 1-9 held the model emitter's options' states as fields of its state; since format 10 its chain's
+    parts hold theirs (`ModelEmitterState.parts`, by part name; a part not in the config's chain is not read)."""
+    emitter = state["emitter"]
+    if not (isinstance(emitter, dict) and "surrogate" in emitter):
+        return state
+    kept = {k: v for k, v in emitter.items() if k not in _PARTS}
+    # A format 4 file's state was completed from a fresh run's (`_from_format_4`), whose parts it keeps.
+    moved = {part: emitter[old] for old, part in _PARTS.items() if old in emitter}
+    return {**state, "emitter": {**kept, "parts": {**moved, **emitter.get("parts", {})}}}
+
+
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array, chunk: int | None = None) -> None:
     """Writes a checkpoint of `state` and `metrics` (each [generations]) atomically to `path`; `chunk`: the
     generations per compiled call of a batch (`sweep.run_batch`), which its resumption must keep to repeat it bit
@@ -301,7 +319,7 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
             payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
         if payload["format"] < 6:
             payload["state"] = _from_format_5(payload["state"])
-        payload["state"] = _from_format_8(_from_format_7(_from_format_6(payload["state"]), cfg))
+        payload["state"] = _from_format_9(_from_format_8(_from_format_7(_from_format_6(payload["state"]), cfg)))
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

@@ -157,6 +157,12 @@ class Hooks:
                 task: Task, params: Any, features: jax.Array | None = None) -> Any:
         return state
 
+    def metrics(self) -> dict[str, Any]:
+        return {}
+
+    def report(self, validity: jax.Array | None, rollout: jax.Array, evaluated: Evaluated) -> dict[str, jax.Array]:
+        return {}
+
 
 def _name(part: Any) -> str:
     return type(part).__name__

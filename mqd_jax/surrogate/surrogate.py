@@ -30,7 +30,7 @@ from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task, feature_dim
 from mqd_jax.surrogate import model
 from mqd_jax.surrogate.gate import Gate
-from mqd_jax.surrogate.validity import Validity
+from mqd_jax.surrogate.validity import Validity, auc
 
 TRAINING_DATA = ("repertoire", "rollouts")
 
@@ -181,6 +181,18 @@ class Surrogate:
     def usable(self, state: SurrogateState, actions: jax.Array, task: Task) -> jax.Array | None:
         """[N] the validity classifier's probability of a usable rollout of actions [N, n], or None without one."""
         return None if self.validity is None else self.validity.probability(state.validity, actions, task)
+
+    def metrics(self) -> dict[str, Any]:
+        """The metrics `report` gives: with a validity classifier `validity_auc`."""
+        return {} if self.validity is None else {"validity_auc": jnp.float32}
+
+    def report(self, validity: jax.Array | None, rollout: jax.Array, evaluated: Evaluated) -> dict[str, jax.Array]:
+        """With a validity classifier, `validity_auc`: among a generation's rollouts (rollout [P]) the probability
+        that a usable one had a higher judged probability (validity [P]) of being usable than an unusable one; ties
+        1/2; NaN without both."""
+        if self.validity is None:
+            return {}
+        return {"validity_auc": auc(validity, rollout & evaluated.usable, rollout & ~evaluated.usable)}
 
     def fit(self, key: jax.Array, state: SurrogateState, repertoire: Repertoire, task: Task,
             params: SurrogateParams) -> tuple[SurrogateState, jax.Array]:

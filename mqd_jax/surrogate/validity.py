@@ -94,3 +94,13 @@ class Validity:
                               self.num_batches)[0],
             lambda: state.model)
         return ValidityState(model=trained, buffer=buffer, unusable=unusable)
+
+
+def auc(score: jax.Array, positive: jax.Array, negative: jax.Array) -> jax.Array:
+    """P(score of a positive row > score of a negative one) over score [P] and the masks [P], ties 1/2; NaN
+    without both kinds. NaN scores count as the lowest."""
+    score = jnp.nan_to_num(score, nan=-jnp.inf)
+    pairs = positive[:, None] & negative[None, :]
+    wins = jnp.where(score[:, None] > score[None, :], 1.0, jnp.where(score[:, None] == score[None, :], 0.5, 0.0))
+    n = pairs.sum()
+    return jnp.where(n > 0, jnp.where(pairs, wins, 0.0).sum() / jnp.maximum(n, 1), jnp.nan)
