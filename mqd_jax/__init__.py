@@ -16,6 +16,7 @@ from mqd_jax.emitters.imagination import Imagination
 from mqd_jax.emitters.model_emitter import ModelEmitter
 from mqd_jax.emitters.parts import Part, Share
 from mqd_jax.emitters.pursuit import Fallback
+from mqd_jax.emitters.side_by_side import SideBySide
 from mqd_jax.emitters.steering import Steering
 from mqd_jax.emitters.step_aside import StepAside
 from mqd_jax.surrogate.surrogate import Surrogate
@@ -40,6 +41,7 @@ __all__ = [
            "Part",
            "Proposal",
            "Share",
+           "SideBySide",
            "State",
            "Steering",
            "StepAside",

@@ -38,7 +38,6 @@ from mqd_jax.core.checks import check_traced, is_int
 from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, check_state, get_task
 from mqd_jax.core.task import Task
-from mqd_jax.emitters.model_emitter import ModelEmitter
 from mqd_jax.surrogate import model
 
 METHODS = ("nearest", "linear", "model")
@@ -85,7 +84,7 @@ def _linear_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
 
 def _model_jacobian(state: State, cfg: Config, task: Task) -> Jacobian:
     """J [G, d, n] of the model's behavior prediction (real units) at each a_j."""
-    behavior = lambda a: cfg.emitter.model.predict(state.emitter.surrogate, a, task)[0]  # noqa: E731
+    behavior, _ = cfg.emitter.forward_model(state.emitter, task)
     return lambda a, b: jax.vmap(jax.jacfwd(behavior))(a)
 
 
@@ -129,9 +128,10 @@ def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task,
         raise ValueError(f"steps={steps!r} is invalid: expected an int >= 0")
     check_traced("adapt", "step_size", step_size, inclusive=False)
     check_traced("adapt", "t_dist", t_dist, inclusive=False)
-    if method == "model" and not isinstance(cfg.emitter, ModelEmitter):
-        raise ValueError(f"method 'model' needs a run whose emitter is a ModelEmitter (M-QD), not "
-                         f"{cfg.algorithm!r}: a QD or RANDOM run has no model")
+    found = cfg.emitter.forward_model(state.emitter, task)
+    if method == "model" and found is None:
+        raise ValueError(f"method 'model' needs a run whose emitter has a model (M-QD: a ModelEmitter, or a "
+                         f"SideBySide with one), not {cfg.algorithm!r}: a QD or RANDOM run has no model")
     # Only what adaptation reads: t_dist may differ from the run's, and with it the coverage grid's stamp.
     check_state(state, cfg, batch=np.shape(state.repertoire.count), fields=("repertoire", "emitter"))
     if goals.ndim < 2 or goals.shape[-1] != task.behavior_dim:
@@ -142,7 +142,7 @@ def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task,
     if (np.asarray(state.repertoire.count) == 0).any():
         raise ValueError("the repertoire is empty: run the search first")
     # The model emitter fits its surrogate after every generation once warm-up is over.
-    if method == "model" and (np.asarray(state.emitter.evaluations) < cfg.emitter.warmup_samples).any():
+    if method == "model" and not np.asarray(found[1]).all():
         raise ValueError("method 'model' needs a trained model: this state's model never trained "
                          "(an M-QD run that did not finish warm-up)")
 
@@ -154,8 +154,8 @@ def adapt(state: State, goals: jax.Array, key: jax.Array, cfg: Config, method: s
 
     Args:
       state: a run's state (from `run_mqd` or `run_generations`); "model" needs
-        the state of a run whose emitter is a `ModelEmitter` (M-QD) whose model
-        has trained.
+        the state of a run whose emitter has a model (`Emitter.forward_model`: a `ModelEmitter`, M-QD, or a
+        `SideBySide` with one) that has trained.
       goals: [G, d] desired behaviors (anywhere; outside the behavior box too).
       key: PRNG key for the rollouts.
       cfg: the run's config (its task, k and emitter).

@@ -139,7 +139,7 @@ def test_bad_calls_are_refused_before_tracing(obstacle_run):
         adapt(init(key, cfg), jnp.zeros((3, 2)), key, cfg, "linear")
     qd_cfg = dataclasses.replace(cfg, algorithm="qd", algorithm_options={})
     qd_state, _ = run_mqd(key, qd_cfg)
-    with pytest.raises(ValueError, match="needs a run whose emitter is a ModelEmitter"):
+    with pytest.raises(ValueError, match="needs a run whose emitter has a model"):
         adapt(qd_state, jnp.zeros((3, 2)), key, qd_cfg, "model")
     with pytest.raises(ValueError, match=r"does not belong to this config.*another structure"):
         adapt(qd_state, jnp.zeros((3, 2)), key, cfg, "linear")  # a QD state with an M-QD config

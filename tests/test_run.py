@@ -89,6 +89,6 @@ def test_the_generation_reads_as_named_stages(tiny):
     cfg = tiny(algorithm="mqd", warmup_samples=16, num_batches=2)
     state = init(jax.random.PRNGKey(0), cfg)
     text = jax.jit(generation, static_argnums=1).lower(state, cfg, cfg.params()).as_text(debug_info=True)
-    for name in ("emit/inner", "emit/steer", "emit/predict", "emit/acquire", "evaluate", "insert", "archive",
+    for name in ("emit/inner", "emit/steering", "emit/predict", "emit/acquire", "evaluate", "insert", "archive",
                  "coverage", "update/train", "metrics"):
         assert re.search(rf'["/]{name}/', text), name  # an operation's location: .../emit/predict/...

@@ -31,6 +31,7 @@ This module holds the protocol; `mqd_jax.emitters.baselines` the paper's baselin
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -151,6 +152,13 @@ class Emitter:
     def metrics(self) -> dict[str, Any]:
         """{name: dtype} of the scalars `update` returns (default: none)."""
         return {}
+
+    def forward_model(self, state: Any, task: Task) -> tuple[Callable[[jax.Array], jax.Array], jax.Array] | None:
+        """The emitter's learned model of behavior, as it stands in `state`: (predict, trained), predict mapping
+        an action [n] to its predicted behavior [d] (differentiable: `adapt(..., "model")` takes its Jacobian)
+        and trained a bool array (the model has trained); None for an emitter without one (default)."""
+        del state, task
+        return None
 
 
 def init_emitter(emitter: Emitter, key: jax.Array, task: Task, capacity: int) -> Any:

@@ -145,6 +145,10 @@ class ModelEmitter(Emitter):
         """The chain's part named `name`, or None."""
         return next((part for part in self.parts if part.name == name), None)
 
+    def forward_model(self, state: ModelEmitterState, task: Task) -> tuple[Any, jax.Array]:
+        """(action [n] -> predicted behavior [d], trained: warm-up is over and the surrogate was fitted)."""
+        return (lambda a: self.model.predict(state.surrogate, a, task)[0]), state.evaluations >= self.warmup_samples
+
     def default_params(self) -> ModelEmitterParams:
         return ModelEmitterParams(self.model.default_params(), self.inner.default_params(),
                                   params_of(self.acquisition))
