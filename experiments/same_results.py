@@ -2,6 +2,7 @@
 
     python experiments/same_results.py --save results/before.npz     # with the old code
     python experiments/same_results.py --compare results/before.npz  # with the new code: a table
+    python experiments/same_results.py --algorithms mqd mqd:step_aside=true mqd-paper:budgeted=true ...
 
 Runs 2D Obstacle (Table II's 2D settings, `--generations`) for each `--algorithms` preset at each
 `--populations` size (capacity max(4096, population)), seed 0, and keeps every metric per generation
@@ -31,8 +32,11 @@ def runs(args: argparse.Namespace) -> dict[str, np.ndarray]:
     out = {}
     for algorithm in args.algorithms:
         for population in args.populations:
-            cfg = Config.paper_2d(task="obstacle2d", algorithm=algorithm, population_size=population,
-                                  capacity=max(4096, population), max_generations=args.generations)
+            name, _, given = algorithm.partition(":")  # a preset, or "name:option=value,..." (values as JSON)
+            options = {k: json.loads(v) for k, v in (item.split("=", 1) for item in given.split(","))} if given else {}
+            cfg = Config.paper_2d(task="obstacle2d", algorithm=name, algorithm_options=options,
+                                  population_size=population, capacity=max(4096, population),
+                                  max_generations=args.generations)
             for seed in range(args.seeds):
                 state, metrics = jax.device_get(run_mqd(jax.random.PRNGKey(seed), cfg))
                 n = int(state.repertoire.count)

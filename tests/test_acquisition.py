@@ -27,6 +27,7 @@ from mqd_jax.emitters.acquisition import (
 )
 from mqd_jax.emitters.model_emitter import ModelEmitterState, _share, opener_auc
 from mqd_jax.emitters.pursuit import Fallback, FallbackState
+from mqd_jax.experiment.migrations import config_from
 from mqd_jax.surrogate import model
 from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState
@@ -576,7 +577,7 @@ def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor
             saved = {k: v for k, v in flat(Config(algorithm=algorithm)).items() if k not in added[version:]}
             old = {**{k: then[k] for k in added[version:]}, "features": False, "gate": False} \
                 if algorithm == "mqd" else {}
-            assert Config.from_dict(saved) == Config(algorithm=algorithm, algorithm_options=old), (algorithm, missing)
+            assert config_from(saved) == Config(algorithm=algorithm, algorithm_options=old), (algorithm, missing)
     assert Config(algorithm="mqd").emitter.part("steering") == Steering(0.25)
     # The preset's rule reads its quality share.
     assert Config(algorithm="mqd").emitter.acquisition.quality_share == 0.1
@@ -586,9 +587,9 @@ def test_mqd_configs_saved_before_version_0_5_do_not_steer_and_before_0_6_anchor
 def test_configs_saved_before_version_0_3_name_the_papers_filter():
     paper = Config(algorithm="mqd-paper", algorithm_options={"pool_factor": 4})
     old = {k: v for k, v in flat(paper).items() if k not in ("ensemble_size", "optimism")}
-    assert Config.from_dict({**old, "algorithm": "mqd"}) == paper
+    assert config_from({**old, "algorithm": "mqd"}) == paper
     del old["pool_factor"]
-    assert Config.from_dict({**old, "algorithm": "mqd"}).options["pool_factor"] == 4  # the default then
+    assert config_from({**old, "algorithm": "mqd"}).options["pool_factor"] == 4  # the default then
 
 
 @pytest.mark.parametrize("exact", [True, False])

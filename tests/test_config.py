@@ -10,6 +10,7 @@ import pytest
 from mqd_jax import Budgeted, Config, IsoLine, ModelEmitter, adaptation
 from mqd_jax.core import algorithms, registry
 from mqd_jax.experiment import folders
+from mqd_jax.experiment.migrations import config_from
 
 DATA = pathlib.Path(__file__).resolve().parent / "data" / "v0.9.0"
 
@@ -110,13 +111,13 @@ def test_configs_of_version_0_9_read_with_their_settings_as_algorithm_options():
     took neither the task's features nor a gate (0.11's defaults)."""
     old = folders.read_json(str(DATA / "run" / "metrics.json"), "")["config"]
     assert old["warmup_samples"] == 8 and "algorithm_options" not in old
-    cfg = Config.from_dict(old)
+    cfg = config_from(old)
     assert cfg == Config(algorithm="mqd", max_generations=3, population_size=8, capacity=32, archive_capacity=16,
                          coverage_resolution=16, algorithm_options=dict(warmup_samples=8, num_batches=2, hidden_size=4,
                                                                         features=False, gate=False))
-    assert Config.from_dict({**old, "physics_backend": "auto"}) == cfg  # and before 0.2
+    assert config_from({**old, "physics_backend": "auto"}) == cfg  # and before 0.2
     with pytest.raises(ValueError, match="unknown fields"):
-        Config.from_dict({**old, "filter": "strict"})
+        config_from({**old, "filter": "strict"})
 
 
 def test_robot_settings_are_options_of_the_task_not_fields_of_the_core_config():

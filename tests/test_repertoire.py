@@ -1,12 +1,13 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import oracle
 import pytest
 import reference
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mqd_jax.core import neighbours, repertoire
+from mqd_jax.core import bands, insertion, neighbours, repertoire
 from mqd_jax.core.repertoire import AddStatus, Repertoire, insert
 
 NAMES = {AddStatus.SKIPPED: "skipped", AddStatus.ADDED: "added", AddStatus.REPLACED: "replaced",
@@ -24,12 +25,12 @@ _banded = jax.jit(lambda *args: _insert_fn(*args))  # a function of its own: jit
 
 
 def _insert_banded(*args):
-    """`_insert` with the nearest skills searched in bands (`repertoire._near_within`) however small the sizes."""
-    saved, repertoire.BRUTE_FORCE_PAIRS = repertoire.BRUTE_FORCE_PAIRS, 0
+    """`_insert` with the nearest skills searched in bands (`bands.near_within`) however small the sizes."""
+    saved, bands.BRUTE_FORCE_PAIRS = bands.BRUTE_FORCE_PAIRS, 0
     try:
         return _banded(*args)
     finally:
-        repertoire.BRUTE_FORCE_PAIRS = saved
+        bands.BRUTE_FORCE_PAIRS = saved
 
 
 def _batches(draw_seed: int, generations: int, pop: int, spread: float, lattice: bool = False):
@@ -207,15 +208,15 @@ def test_the_parallel_rule_is_the_sequential_rule_bit_for_bit(dim, window, monke
     statuses, slots of the skills written, replaced skills and candidates, who is alive; rounds <= P + 1. The
     rounds read each candidate's runs of grid cells, `window` * 4^j places (or P) of each; the full searches of
     the skills that remain run 3 candidates at a time."""
-    monkeypatch.setattr(repertoire, "MIN_RUN", window)
-    monkeypatch.setattr(repertoire, "SEARCH_ROWS", 3)
+    monkeypatch.setattr(insertion, "MIN_RUN", window)
+    monkeypatch.setattr(insertion, "SEARCH_ROWS", 3)
     capacity, pop = 48, 24
 
     def both(rep, b, q, usable, t_dist):
-        near_d, near_i = repertoire._nearest_before(2, capacity, rep, b)
-        return (repertoire._sequential_rule(rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist),
-                repertoire._parallel_rule(rep, b, near_d, near_i, q, usable, t_dist,
-                                          repertoire._searched(b, usable, t_dist)[0]))
+        near_d, near_i = bands.nearest_before(2, capacity, rep, b)
+        return (oracle.sequential_rule(rep, b, near_d, near_i, neighbours.sq_dists(b, b), q, usable, t_dist),
+                insertion.parallel_rule(rep, b, near_d, near_i, q, usable, t_dist,
+                                          bands.searched(b, usable, t_dist)[0]))
 
     rng = np.random.default_rng(dim)
     reps, b, q, usable = _random_generations(rng, 96, capacity, pop, dim)
@@ -262,8 +263,8 @@ def test_a_band_holds_every_row_within_t_dist_and_the_axis_is_the_narrowest(dim)
     points = (lattice + rng.choice([0.0, 1e-4], lattice.shape)).astype(np.float32)
     ok = rng.random(300) > 0.1
     rows = jnp.asarray(points)
-    axis = repertoire._axis(rows, jnp.asarray(ok), jnp.float32(t_dist))
-    order, lo, hi, widest = repertoire._bands(rows[:50], jnp.asarray(ok[:50]), rows, jnp.asarray(ok), axis,
+    axis = bands.axis(rows, jnp.asarray(ok), jnp.float32(t_dist))
+    order, lo, hi, widest = bands.bands(rows[:50], jnp.asarray(ok[:50]), rows, jnp.asarray(ok), axis,
                                               jnp.float32(t_dist))
     d = np.asarray(neighbours.sq_dists(rows[:50], rows))
     for i in np.flatnonzero(ok[:50]):
@@ -272,4 +273,4 @@ def test_a_band_holds_every_row_within_t_dist_and_the_axis_is_the_narrowest(dim)
         assert int(hi[i]) - int(lo[i]) <= int(widest)
     if dim > 1:  # spread one axis 40 times wider: its bands are the narrowest
         spread = rows.at[:, dim - 1].multiply(40.0)
-        assert int(repertoire._axis(spread, jnp.asarray(ok), jnp.float32(t_dist))) == dim - 1
+        assert int(bands.axis(spread, jnp.asarray(ok), jnp.float32(t_dist))) == dim - 1

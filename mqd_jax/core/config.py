@@ -215,9 +215,9 @@ class Config:
 
     @classmethod
     def from_dict(cls, saved: dict[str, Any]) -> Config:
-        """The config `to_dict` wrote (or an earlier version, see `upgraded`). Raises ValueError for a task or
-        emitter saved as a repr (no name to rebuild it from) or an unknown field."""
-        saved = upgraded(saved)
+        """The config `to_dict` wrote (a file of an earlier version: `mqd_jax.experiment.migrations.config_from`).
+        Raises ValueError for a task or emitter saved as a repr (no name to rebuild it from) or an unknown field."""
+        saved = dict(saved)
         options = saved.pop("task_options", None)
         unknown = set(saved) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
@@ -245,73 +245,3 @@ class Config:
     def params(self) -> Params:
         """The traced parameters: `t_dist` and the emitter's defaults (`Emitter.default_params()`)."""
         return Params(t_dist=jnp.asarray(self.t_dist, jnp.float32), emitter=self.emitter.default_params())
-
-
-# The fields a config had before version 0.10 put a preset's settings into `algorithm_options`.
-_FLAT = ("t_nov", "t_qua", "learning_rate", "batch_size", "num_batches", "warmup_samples", "hidden_size",
-         "iso_sigma", "line_sigma", "pool_factor", "ensemble_size", "optimism", "steering_share", "anchor",
-         "parent_weight", "quality_share", "wide_scale", "budgeted")
-# Adaptation's settings, arguments of `mqd_jax.adapt` since version 0.10.
-_ADAPTATION = ("adaptation_step_size", "adaptation_steps")
-
-
-def _flat_defaults() -> dict[str, Any]:
-    """Today's defaults of the flat fields, for configs saved before a field existed."""
-    return {**algorithms.options("mqd"), **algorithms.options("mqd-paper")}
-
-
-def upgraded(saved: dict[str, Any]) -> dict[str, Any]:
-    """A config dict saved by an earlier version in today's fields. Before version 0.10 a preset's settings were
-    fields of the config: they become its `algorithm_options` (those the preset takes), and adaptation's two
-    (arguments of `adapt` now) are dropped. Before that: `physics_backend` "auto" is dropped (since
-    version 0.2 a robot task's backend is an option of its construction, `task_options`); before version 0.3
-    (configs without `ensemble_size`) "mqd" was the paper's filter, today's "mqd-paper", and `pool_factor`
-    defaulted to 4; before version 0.5 (configs without `steering_share`) "mqd" did not steer; before version
-    0.6 (configs without `anchor`) it anchored at the nearest skill; before version 0.7 (configs without
-    `parent_weight`) it ranked predicted openers by their distance alone; before version 0.8 (configs without
-    `quality_share`) it made no quality steps; before version 0.9 (configs without `wide_scale`) it varied its
-    pool at one scale; before version 0.11 (options without `features`) "mqd"'s model took neither the task's
-    features nor a gate."""
-    saved = dict(saved)
-    if "algorithm_options" in saved:  # version 0.10 or later
-        return _since_0_10(saved)
-    defaults = _flat_defaults()
-    if "ensemble_size" not in saved:
-        saved.setdefault("pool_factor", 4)
-        if saved.get("algorithm") == "mqd":
-            saved["algorithm"] = "mqd-paper"
-        for name in ("ensemble_size", "optimism"):  # fields that did not exist: today's defaults
-            saved[name] = defaults[name]
-    if "steering_share" not in saved:  # before version 0.5 "mqd" did not steer
-        saved["steering_share"] = 0.0 if saved.get("algorithm") == "mqd" else defaults["steering_share"]
-    if "anchor" not in saved:  # before version 0.6 "mqd" anchored at the nearest skill
-        saved["anchor"] = "nearest" if saved.get("algorithm") == "mqd" else defaults["anchor"]
-    if "parent_weight" not in saved:  # before version 0.7 "mqd" ranked by the predicted distance alone
-        saved["parent_weight"] = 0.0 if saved.get("algorithm") == "mqd" else defaults["parent_weight"]
-    if "quality_share" not in saved:  # before version 0.8 "mqd" made no quality steps
-        saved["quality_share"] = 0.0 if saved.get("algorithm") == "mqd" else defaults["quality_share"]
-    if "wide_scale" not in saved:  # before version 0.9 "mqd" varied its pool at one scale
-        saved["wide_scale"] = 1.0 if saved.get("algorithm") == "mqd" else defaults["wide_scale"]
-    backend = saved.pop("physics_backend", "auto")
-    if backend != "auto":
-        saved["task_options"] = {**saved.get("task_options", {}), "backend": backend}
-    flat = {name: saved.pop(name) for name in _FLAT if name in saved}  # before version 0.10: fields of the config
-    for name in _ADAPTATION:
-        saved.pop(name, None)
-    taken = algorithms.options(saved["algorithm"]) if saved.get("algorithm") in algorithms.names() else {}
-    saved["algorithm_options"] = {name: value for name, value in flat.items() if name in taken}
-    return _since_0_10(saved)
-
-
-def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
-    """A config dict of version 0.10 or later in today's options: "mqd" without `features` (before version 0.11)
-    took neither the task's features nor a gate; without `validity` (before version 0.16) it had neither a
-    validity classifier nor a step aside, and trained on the repertoire; a config without `coverage_samples`
-    (before version 0.12, when every behavior space had two dimensions and a coverage grid) takes today's
-    default, which a grid does not read."""
-    options = dict(saved.get("algorithm_options", {}))
-    if saved.get("algorithm") == "mqd" and "features" not in options:
-        options.update(features=False, gate=False)
-    if saved.get("algorithm") == "mqd" and "validity" not in options:
-        options.update(validity=False, step_aside=False, training_data="repertoire", rollout_buffer=4096)
-    return {"coverage_samples": Config.coverage_samples, **saved, "algorithm_options": options}

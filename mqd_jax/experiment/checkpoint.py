@@ -39,17 +39,14 @@ from flax import serialization
 
 from mqd_jax.core import diagnostics, pytree
 from mqd_jax.core.checks import is_int
-from mqd_jax.core.config import Config, check_params, upgraded
+from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import State, check_state, get_task, init, kept_features, metric_dtypes, run_generations
-from mqd_jax.experiment import folders
+from mqd_jax.core.run import State, check_state, get_task, init, metric_dtypes, run_generations
+from mqd_jax.experiment import folders, migrations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
 FORMAT = 10
-# The parts of a model emitter's state that format 6 moved into its surrogate's (`SurrogateState`), and the gate
-# format 7 added there (a fresh run's, where an older format's state is completed from one).
-_SURROGATE = ("model", "rollouts", "anchor_errors", "validity", "gate")
 Metrics = dict[str, np.ndarray]
 
 
@@ -77,120 +74,6 @@ def _register_pytrees() -> None:
 
         serialization.register_serialization_state(cls, to_state_dict, from_state_dict)
         _REGISTERED.add(cls)
-
-
-def _from_format_1(state: dict[str, Any]) -> dict[str, Any]:
-    """Format 1 saved the coverage grid's bounds as arrays; since format 2 they come from the config."""
-    coverage = {k: v for k, v in state["coverage"].items() if k not in ("low", "high")}
-    return {**state, "coverage": coverage}
-
-
-def _from_format_3(state: dict[str, Any], fresh: dict[str, Any], cfg: Config) -> dict[str, Any]:
-    """Formats 1-3 kept M-QD's model in `state["model"]` with Adam's state alone (QD and RANDOM an untrained
-    one); since format 4 the model emitter's state holds it, Adam's state inside optax.inject_hyperparams'.
-    `fresh`: the state dict of a new run of `cfg`, whose emitter state is filled in."""
-    state = dict(state)
-    old, emitter = state.pop("model"), fresh["emitter"]
-    if "model" in emitter:
-        model = emitter["model"]
-        opt_state = model["opt_state"]
-        opt_state["inner_state"]["0"] = old["opt_state"]
-        opt_state["count"] = old["steps"]
-        # The rate `train` last set, for a run with the config's own params.
-        opt_state["hyperparams"]["learning_rate"] = np.full_like(opt_state["hyperparams"]["learning_rate"],
-                                                                 cfg.emitter.surrogate.learning_rate)
-        model.update(params=old["params"], steps=old["steps"])
-        emitter["evaluations"] = state["num_evaluations"]
-    return {**state, "emitter": emitter}
-
-
-def _from_format_4(state: dict[str, Any], fresh: dict[str, Any], batched: bool) -> dict[str, Any]:
-    """Format 4 held one network's parameters and Adam moments; since format 5 the model is an ensemble (a
-    leading member axis, here of one member) and the model emitter's state also holds `rollouts` and
-    `fallback` (empty for the one-network presets). `fresh`: the state dict of a new run of the config."""
-    emitter = state["emitter"]
-    if not (isinstance(emitter, dict) and "model" in emitter):
-        return state
-    member_axis = 1 if batched else 0  # after a batch's [S] axis
-    grow = lambda tree: jax.tree.map(lambda x: np.expand_dims(np.asarray(x), member_axis), tree)  # noqa: E731
-    model = dict(emitter["model"])
-    adam = dict(model["opt_state"]["inner_state"]["0"])
-    adam.update(mu=grow(adam["mu"]), nu=grow(adam["nu"]))
-    inner_state = {**model["opt_state"]["inner_state"], "0": adam}
-    model.update(params=grow(model["params"]), opt_state={**model["opt_state"], "inner_state": inner_state})
-    return {**state, "emitter": {**fresh["emitter"], **emitter, "model": model}}
-
-
-def _flat(emitter: Any) -> Any:
-    """A model emitter's state dict of format 6 as formats 4-5 held it: the surrogate's parts beside the rest."""
-    if not (isinstance(emitter, dict) and "surrogate" in emitter):
-        return emitter
-    return {**{k: v for k, v in emitter.items() if k != "surrogate"}, **emitter["surrogate"]}
-
-
-def _from_format_5(state: dict[str, Any]) -> dict[str, Any]:
-    """Formats 4-5 held the model, its rollout buffer, anchoring errors and validity classifier in the model
-    emitter's state; since format 6 its surrogate's state (`SurrogateState`) holds them."""
-    emitter = state["emitter"]
-    if not (isinstance(emitter, dict) and "model" in emitter):
-        return state
-    surrogate = {k: emitter[k] for k in _SURROGATE if k in emitter}
-    return {**state, "emitter": {**{k: v for k, v in emitter.items() if k not in _SURROGATE},
-                                 "surrogate": surrogate}}
-
-
-def _from_format_6(state: dict[str, Any]) -> dict[str, Any]:
-    """Formats 1-6 had no gate (`mqd_jax.surrogate.gate`); since format 7 the surrogate's state holds one, empty
-    for a surrogate without it."""
-    emitter = state["emitter"]
-    if not (isinstance(emitter, dict) and "surrogate" in emitter) or "gate" in emitter["surrogate"]:
-        return state
-    return {**state, "emitter": {**emitter, "surrogate": {**emitter["surrogate"], "gate": {}}}}
-
-
-def _from_format_7(state: dict[str, Any], cfg: Config) -> dict[str, Any]:
-    """Formats 1-7 kept no features per skill; since format 8 the repertoire keeps the task's features of each
-    skill where the emitter asks (`Repertoire.features`): computed from the saved actions (0 in empty slots)."""
-    rep = state["repertoire"]
-    if "features" in rep:
-        return state
-    actions, valid = np.asarray(rep["actions"]), np.asarray(rep["valid"], bool)
-    kept = kept_features(cfg)
-    features = np.zeros((*actions.shape[:-1], kept), np.float32)
-    if kept:
-        computed = np.asarray(get_task(cfg).features(jnp.asarray(actions.reshape(-1, actions.shape[-1]))))
-        features = np.where(valid[..., None], computed.reshape(features.shape), 0.0).astype(np.float32)
-    return {**state, "repertoire": {**rep, "features": features}}
-
-
-def _from_format_8(state: dict[str, Any]) -> dict[str, Any]:
-    """Formats 6-8 held anchoring's averaged errors in the surrogate's state and no rule state; since format 9
-    the model emitter holds both (`ModelEmitterState.anchor_errors`, `.acquisition`; the built-in rules keep
-    none) and a step aside's state (empty: the configs of those formats have none)."""
-    emitter = state["emitter"]
-    if not (isinstance(emitter, dict) and "surrogate" in emitter):
-        return state
-    surrogate = dict(emitter["surrogate"])
-    errors = surrogate.pop("anchor_errors", emitter.get("anchor_errors", {}))
-    return {**state, "emitter": {**emitter, "surrogate": surrogate, "anchor_errors": errors,
-                                 "acquisition": emitter.get("acquisition", {}),
-                                 "step_aside": emitter.get("step_aside", {})}}
-
-
-# Format 9's model emitter state fields that format 10 moved into its chain's parts' states, by part name.
-_PARTS = {"fallback": "fallback", "steering": "steering", "step_aside": "step_aside", "anchor_errors": "anchoring"}
-
-
-def _from_format_9(state: dict[str, Any]) -> dict[str, Any]:
-    """Formats 1-9 held the model emitter's options' states as fields of its state; since format 10 its chain's
-    parts hold theirs (`ModelEmitterState.parts`, by part name; a part not in the config's chain is not read)."""
-    emitter = state["emitter"]
-    if not (isinstance(emitter, dict) and "surrogate" in emitter):
-        return state
-    kept = {k: v for k, v in emitter.items() if k not in _PARTS}
-    # A format 4 file's state was completed from a fresh run's (`_from_format_4`), whose parts it keeps.
-    moved = {part: emitter[old] for old, part in _PARTS.items() if old in emitter}
-    return {**state, "emitter": {**kept, "parts": {**moved, **emitter.get("parts", {})}}}
 
 
 def save(path: str, state: State, metrics: Metrics, cfg: Config, key: jax.Array, chunk: int | None = None) -> None:
@@ -278,7 +161,7 @@ def read(path: str) -> dict[str, Any]:
         payload = {**body, "format": payload["format"]}
     _check_fields(path, payload)
     if payload["format"] == 1:
-        payload["state"] = _from_format_1(payload["state"])
+        payload["state"] = migrations.from_format_1(payload["state"])
     return payload
 
 
@@ -295,7 +178,7 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     counted = done and "num_evaluations" in metrics and "num_evaluations" in payload["state"]
     if counted and not np.array_equal(payload["state"]["num_evaluations"], metrics["num_evaluations"][..., -1]):
         raise Refused(path, "its state's rollouts do not match its metrics' count")
-    differ = differences(upgraded(payload["config"]), cfg.to_dict())
+    differ = differences(migrations.upgraded(payload["config"]), cfg.to_dict())
     if differ:
         raise Refused(path, f"it was written with another config ({differ})")
     if not np.array_equal(payload["key"], np.asarray(key)):
@@ -312,14 +195,8 @@ def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
     template = jax.eval_shape(start, key)
     if payload["format"] < FORMAT:
         fresh = serialization.to_state_dict(jax.device_get(start(key)))
-        fresh = {**fresh, "emitter": _flat(fresh["emitter"])}  # as formats 4-5 held it
-        if payload["format"] < 4:
-            payload["state"] = _from_format_3(payload["state"], fresh, cfg)
-        if payload["format"] < 5:
-            payload["state"] = _from_format_4(payload["state"], fresh, key.ndim == 2)
-        if payload["format"] < 6:
-            payload["state"] = _from_format_5(payload["state"])
-        payload["state"] = _from_format_9(_from_format_8(_from_format_7(_from_format_6(payload["state"]), cfg)))
+        payload["state"] = migrations.checkpoint_state(payload["state"], payload["format"], fresh, cfg,
+                                                       key.ndim == 2)
     try:
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:

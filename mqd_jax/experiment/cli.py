@@ -39,9 +39,9 @@ import numpy as np
 
 from mqd_jax import adaptation
 from mqd_jax.core import algorithms, registry
-from mqd_jax.core.config import Config, upgraded
+from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, get_task
-from mqd_jax.experiment import checkpoint, folders, plots, results, sweep
+from mqd_jax.experiment import checkpoint, folders, migrations, plots, results, sweep
 from mqd_jax.experiment.provenance import provenance
 
 # Table II's columns, for `--preset`.
@@ -256,8 +256,9 @@ def _say_removed(paths: list[str], why: str) -> None:
 
 def _upgraded_identity(identity: dict[str, Any]) -> dict[str, Any]:
     """A run folder's identity saved by an earlier version, its config in today's form."""
-    return {**identity, "config": upgraded(identity["config"])} if isinstance(identity.get("config"), dict) \
-        else identity
+    if not isinstance(identity.get("config"), dict):
+        return identity
+    return {**identity, "config": migrations.upgraded(identity["config"])}
 
 
 def _progress_of(path: str) -> tuple[int, int] | None:
@@ -629,7 +630,7 @@ def _render(args: argparse.Namespace) -> None:
     if not isinstance(saved.get("config"), dict):
         raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no config in metrics.json): {repair}")
     try:
-        cfg = Config.from_dict(upgraded(saved["config"]))
+        cfg = migrations.config_from(saved["config"])
     except (TypeError, ValueError) as e:
         raise folders.Damaged(files[0], f"holds an invalid config ({e})", repair) from None
     arrays = folders.read_npz(files[1], repair, results.npz_bytes(cfg))

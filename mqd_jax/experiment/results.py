@@ -49,9 +49,9 @@ import jax
 import numpy as np
 
 from mqd_jax.core import algorithms, coverage, registry
-from mqd_jax.core.config import Config, upgraded
+from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, coverage_method, coverage_points, get_task
-from mqd_jax.experiment import checkpoint, folders
+from mqd_jax.experiment import checkpoint, folders, migrations
 from mqd_jax.experiment.folders import (
     Damaged,
     differences,
@@ -149,7 +149,7 @@ def npz_bytes(cfg: Config, runs: int = 1) -> int:
 def _batch_config(saved: dict[str, Any], path: str, fix: str) -> Config:
     """The config a batch's JSON holds; raises `Damaged` (naming `path`) for one that is not a valid config."""
     try:
-        return Config.from_dict(upgraded(saved["config"]))
+        return migrations.config_from(saved["config"])
     except (TypeError, ValueError, KeyError, AttributeError) as e:
         raise Damaged(path, f"holds an invalid config ({type(e).__name__}: {e})", fix) from e
 
@@ -176,7 +176,7 @@ def _read_batch(out: str, stem: str) -> dict[str, Any]:
             checkpoint.read(stem + ".msgpack")
         except ValueError as e:
             raise Damaged(stem + ".msgpack", f"is missing or damaged ({e})", fix) from e
-    saved["config"] = upgraded(saved["config"])
+    saved["config"] = migrations.upgraded(saved["config"])
     return saved
 
 
