@@ -27,6 +27,11 @@ def _prefix(algorithm: str, population: int, seed: int) -> str:
     return f"{algorithm}/{population}/" + (f"seed{seed}/" if seed else "")
 
 
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bit for bit, NaN equal to NaN (a metric that is NaN where it does not apply, as model_loss in warm-up)."""
+    return np.array_equal(a, b, equal_nan=a.dtype.kind == "f" and b.dtype.kind == "f")
+
+
 def runs(args: argparse.Namespace) -> dict[str, np.ndarray]:
     """{"<algorithm>/<population>/<name>": array} of every run."""
     out = {}
@@ -75,8 +80,8 @@ def main() -> None:
         for population in args.populations:
             prefix = _prefix(algorithm, population, 0)
             names = sorted(k for k in before if k.startswith(prefix) and "/seed" not in k)
-            differ = [k[len(prefix):] for k in names if k not in now or not np.array_equal(now[k], before[k])]
-            same = not differ and all(np.array_equal(now[k], before[k]) for k in before if k.startswith(prefix))
+            differ = [k[len(prefix):] for k in names if k not in now or not _same(now[k], before[k])]
+            same = not differ and all(_same(now[k], before[k]) for k in before if k.startswith(prefix))
             gap = np.abs(now[prefix + "metrics.coverage"] - before[prefix + "metrics.coverage"]).max()
             curves = [np.stack([run[_prefix(algorithm, population, seed) + "metrics.coverage"]
                                 for seed in range(args.seeds)]) for run in (now, before)]

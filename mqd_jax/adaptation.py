@@ -128,12 +128,12 @@ def _check(state: State, goals: jax.Array, cfg: Config, method: str, task: Task,
         raise ValueError(f"steps={steps!r} is invalid: expected an int >= 0")
     check_traced("adapt", "step_size", step_size, inclusive=False)
     check_traced("adapt", "t_dist", t_dist, inclusive=False)
+    # Only what adaptation reads: t_dist may differ from the run's, and with it the coverage grid's stamp.
+    check_state(state, cfg, batch=np.shape(state.repertoire.count), fields=("repertoire", "emitter"))
     found = cfg.emitter.forward_model(state.emitter, task)
     if method == "model" and found is None:
         raise ValueError(f"method 'model' needs a run whose emitter has a model (M-QD: a ModelEmitter, or a "
                          f"SideBySide with one), not {cfg.algorithm!r}: a QD or RANDOM run has no model")
-    # Only what adaptation reads: t_dist may differ from the run's, and with it the coverage grid's stamp.
-    check_state(state, cfg, batch=np.shape(state.repertoire.count), fields=("repertoire", "emitter"))
     if goals.ndim < 2 or goals.shape[-1] != task.behavior_dim:
         raise ValueError(f"goals has shape {goals.shape}: expected (G, {task.behavior_dim}) for task "
                          f"{cfg.task_name!r}")

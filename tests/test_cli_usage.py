@@ -11,9 +11,11 @@ import jax
 import numpy as np
 import pytest
 
+import mqd_jax
 from mqd_jax import Config, ask, init, run_mqd, tell
 from mqd_jax.core import registry
 from mqd_jax.experiment import checkpoint, cli
+from mqd_jax.experiment import progress as progress_lib
 
 
 def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_path, caplog):
@@ -30,20 +32,20 @@ def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_pat
 def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys, monkeypatch, tiny_flags, refused):
     argv = ["run", *tiny_flags, "--generations", "4", "--chunk", "2", "--algorithm", "mqd-paper",
             "--algorithm-option", "warmup_samples=8", "num_batches=2", "--out", str(tmp_path)]
-    chunk = cli._Progress.chunk
+    chunk = progress_lib.Lines.chunk
 
     def interrupt_after_first(self, done, m):
         chunk(self, done, m)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli._Progress, "chunk", interrupt_after_first)
+    monkeypatch.setattr(progress_lib.Lines, "chunk", interrupt_after_first)
     with pytest.raises(SystemExit) as e:
         cli.main(argv)
     assert e.value.code == 130
     captured = capsys.readouterr()
     assert f"interrupted at generation 2; `mqd run --resume --out {tmp_path}` continues" in captured.err
     assert "Traceback" not in captured.err
-    monkeypatch.setattr(cli._Progress, "chunk", chunk)
+    monkeypatch.setattr(progress_lib.Lines, "chunk", chunk)
     refused(argv, f"holds a checkpoint of this run at generation 2 of 4: `mqd run --resume --out {tmp_path}` continues "
                   "it; --overwrite starts afresh, deleting those 2 generations")
     cli.main(["run", "--resume", "--out", str(tmp_path)])  # the saved config: no other flag needed
@@ -154,3 +156,25 @@ def test_the_compilation_cache_is_on_by_default_and_can_be_turned_off(tmp_path, 
     out = subprocess.run([sys.executable, "-c", code], env={**env, cli.CACHE_ENV: str(tmp_path / "a-file" / "x")},
                          capture_output=True, text=True, check=True).stdout
     assert out.startswith("(None, 'no compilation cache: ") and "cannot be written" in out and out.endswith("None\n")
+
+
+def test_version_and_did_you_mean_for_tasks_algorithms_and_plugins(capsys, refused, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"mqd-jax {mqd_jax.__version__}"
+    refused(["run", "--task", "obstcle2d", "--out", str(tmp_path)], "(did you mean 'obstacle2d'?)")
+    refused(["run", "--algorithm", "mdq", "--out", str(tmp_path)], "(did you mean 'mqd'?)")
+    refused(["run", "--task", "no_such_package.tasks:make", "--out", str(tmp_path)],
+            "is 'no_such_package' on the Python path? Run from the folder that holds it with PYTHONPATH=.")
+
+
+def test_a_run_warning_is_one_line_without_the_librarys_source(capsys):
+    import warnings
+
+    from mqd_jax.core.diagnostics import RunWarning
+
+    with warnings.catch_warnings():
+        warnings.showwarning = cli._show_warning
+        warnings.warn("3 new niches were dropped", RunWarning, stacklevel=1)
+    err = capsys.readouterr().err
+    assert err == "warning: 3 new niches were dropped\n"

@@ -429,7 +429,7 @@ def test_tables_mark_runs_whose_every_rollout_failed_and_name_missing_batches(ma
     failed = {**qd.metrics, "invalid": qd.metrics["evaluations"].copy()}  # every rollout of both seeds failed
     failed["invalid"][0] = 0  # ... but for the first seed's first generation
     runs = {"obstacle2d": {"mqd": by["mqd"], "qd": results.Runs(qd.cfg, qd.keys, qd.wall_s, qd.machine, failed,
-                                                               qd.count, qd.behaviors)}}
+                                                               qd.count, qd.behaviors, qd.qualities)}}
     text = "\n".join(results.tables(runs))
     assert text.count("[every rollout failed in 1 of 2 runs]") == 2  # coverage and mean quality
     assert "Missing" not in text

@@ -58,3 +58,17 @@ def test_a_robot_skill_renders_the_arm_moving():
     assert frames.shape == (task.horizon // 50, 48, 64, 3) and frames.dtype == np.uint8
     assert frames.mean() > 40  # lit, not a black image
     assert np.abs(frames[0].astype(int) - frames[2].astype(int)).mean() > 0.5  # the arm moved
+
+
+def test_render_prints_rounded_numbers_counts_one_skill_and_names_a_sweep_folder(tmp_path, capsys, refused,
+                                                                                 monkeypatch):
+    pytest.importorskip("matplotlib", reason="drawing a 2D skill needs the plot extra")
+    _run_folder(tmp_path, [[0.199, 0.3]])  # float32 0.199 is 0.19900000095... in binary
+    cli.main(["render", str(tmp_path), "--out", str(tmp_path / "one.gif"), "--width", "40", "--height", "40"])
+    out = capsys.readouterr().out
+    assert out.startswith("skill 0: behavior [0.199, 0.3], action [0.0, 1.0, 1.0,") and "0000" not in out
+    refused(["render", str(tmp_path), "--index", "1"], "the repertoire holds 1 skill (0 to 0)")
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    monkeypatch.setattr(folders, "kind", lambda folder: "sweep" if folder == str(sweep) else None)
+    refused(["render", str(sweep)], "is a folder of `mqd sweep`: `mqd render` takes a folder of `mqd run`")

@@ -225,7 +225,7 @@ def test_table_one_shows_the_papers_values_beside_its_settings_only():
 
     def runs(cfg):
         keys, count, behaviors = np.zeros((2, 2), np.uint32), np.ones(2, int), np.zeros((2, 1, 2))
-        return results.Runs(cfg, keys, 1.0, "here", metrics, count, behaviors)
+        return results.Runs(cfg, keys, 1.0, "here", metrics, count, behaviors, np.zeros((2, 1)))
 
     by_alg = {"mqd-paper": runs(Config.paper("obstacle2d", algorithm="mqd-paper")),
               "qd": runs(Config.paper("obstacle2d", algorithm="qd", max_generations=30))}

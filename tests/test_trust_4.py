@@ -14,6 +14,7 @@ import pytest
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.run import init
 from mqd_jax.experiment import cli, folders, results
+from mqd_jax.experiment import progress as progress_lib
 
 TINY = ["--generations", "4", "--population", "8", "--capacity", "64", "--chunk", "2", "--algorithm", "random"]
 SWEEP = ["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", "--seeds", "2", "--population", "8", "--capacity",
@@ -22,14 +23,14 @@ SWEEP = ["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", "--seeds", "2",
 
 def stop_after(monkeypatch, generation, then):
     """Runs `then()` right after the progress line of `generation` (a chunk's end, its checkpoint written)."""
-    chunk = cli._Progress.chunk
+    chunk = progress_lib.Lines.chunk
 
     def patched(self, done, m):
         chunk(self, done, m)
         if done == generation:
             then()
 
-    monkeypatch.setattr(cli._Progress, "chunk", patched)
+    monkeypatch.setattr(progress_lib.Lines, "chunk", patched)
 
 
 def interrupt():

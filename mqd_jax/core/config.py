@@ -109,13 +109,15 @@ class Config:
             value = getattr(self, field.name)
             if isinstance(value, np.generic):
                 object.__setattr__(self, field.name, value.item())
-        _check(isinstance(self.task, Task) or (isinstance(self.task, str) and registry.is_task(self.task)), "task",
-               self.task, f"a Task, one of the registered tasks {sorted(registry.registered_tasks())} or a plugin "
-               "'package.module:factory'")
+        if not (isinstance(self.task, Task) or (isinstance(self.task, str) and registry.is_task(self.task))):
+            names = registry.registered_tasks()
+            _check(False, "task", self.task, f"a Task, one of the registered tasks {sorted(names)} or a plugin "
+                   f"'package.module:factory'{registry.did_you_mean(self.task, names)}")
         if isinstance(self.task, Task):
             check_task(self.task, type(self.task).__name__)
-        _check(isinstance(self.algorithm, Emitter) or self.algorithm in algorithms.names(), "algorithm",
-               self.algorithm, f"an Emitter or one of the algorithms {algorithms.names()}")
+        if not (isinstance(self.algorithm, Emitter) or self.algorithm in algorithms.names()):
+            _check(False, "algorithm", self.algorithm, f"an Emitter or one of the algorithms {algorithms.names()}"
+                   f"{registry.did_you_mean(self.algorithm, algorithms.names())}")
         for name, lo in (("max_generations", 1), ("population_size", 1), ("k", 1), ("capacity", 1),
                          ("archive_capacity", 1), ("neighbour_slack", 0), ("coverage_resolution", 8)):
             v = getattr(self, name)

@@ -26,6 +26,7 @@ record it, and a results folder refuses to mix implementations of one task.
 
 from __future__ import annotations
 
+import difflib
 import functools
 import importlib
 import importlib.metadata
@@ -128,11 +129,20 @@ def _register_plugin(name: str) -> bool:
     try:
         factory = getattr(importlib.import_module(module), attribute)
     except (ImportError, AttributeError) as e:
-        raise ValueError(f"task {name!r}: cannot load the factory {attribute!r} from module {module!r} ({e})") from e
+        hint = (f"; is {module.split('.')[0]!r} on the Python path? Run from the folder that holds it with "
+                "PYTHONPATH=. (or install it: pip install -e . in its folder)" if isinstance(e, ImportError) else "")
+        raise ValueError(f"task {name!r}: cannot load the factory {attribute!r} from module {module!r} ({e}){hint}"
+                         ) from e
     if not callable(factory):
         raise ValueError(f"task {name!r}: {module}.{attribute} is not callable")
     register(name, factory, _source=f"plugin {name}")
     return True
+
+
+def did_you_mean(name: str, names: Any) -> str:
+    """' (did you mean 'X'?)' for the name in `names` nearest to a mistyped `name` (difflib), or ''."""
+    near = difflib.get_close_matches(str(name), [str(n) for n in names], n=1, cutoff=0.6)
+    return f" (did you mean {near[0]!r}?)" if near else ""
 
 
 def registered_tasks() -> tuple[str, ...]:
@@ -148,8 +158,8 @@ def is_task(name: str) -> bool:
 def make(name: str, **options: Any) -> Task:
     """The task registered under `name`; `options` go to its factory (robot tasks take `backend`)."""
     if not is_task(name):
-        raise ValueError(f"unknown task {name!r}; registered: {sorted(registered_tasks())}, or give "
-                         "'package.module:factory'")
+        raise ValueError(f"unknown task {name!r}{did_you_mean(name, registered_tasks())}; registered: "
+                         f"{sorted(registered_tasks())}, or give 'package.module:factory'")
     source(name)  # refuses a name two packages register
     return _make(name, tuple(sorted(options.items())))
 

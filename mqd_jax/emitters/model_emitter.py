@@ -137,8 +137,7 @@ class ModelEmitter(Emitter):
 
     @property
     def model(self) -> Any:
-        """The surrogate as this emitter reads it: the built-in `Surrogate` itself, any other with the neutral
-        hooks of `protocol.Hooks`."""
+        """The surrogate as this emitter reads it, with every hook (`protocol.hooks`)."""
         return protocol.hooks(self.surrogate)
 
     def part(self, name: str) -> Any:
@@ -173,8 +172,7 @@ class ModelEmitter(Emitter):
         return self.inner.pool_size(self.acquisition.pool_size(num))
 
     def keeps_features(self, task: Task) -> bool:
-        """The model takes the task's features (`Surrogate(features=True)` and the task has some): the repertoire
-        keeps each skill's, so that anchors and training rows read them rather than compute them again."""
+        """The model takes the task's features: the repertoire keeps each skill's (anchors, training rows)."""
         return self.model.featured(task)
 
     def check_task(self, task: Task) -> None:
@@ -208,8 +206,7 @@ class ModelEmitter(Emitter):
 
     def judge(self, state: ModelEmitterState, actions: jax.Array, repertoire: Repertoire, task: Task,
               parents: jax.Array | None = None) -> acquisition.Judged:
-        """The model's view of actions [N, n] (with their parents' slots [N], or None) against the repertoire
-        (as the chain's predict stages leave the predictions)."""
+        """The model's view of actions [N, n] (their parents' slots [N], or None) against the repertoire."""
         view = self.view(state, repertoire, task, None, actions.shape[0])
         y, _ = self.predicted(state, actions, parents, self.model.inputs(actions, task), view)
         return judged(self.model, state.surrogate, y, repertoire, actions, task, parents, view.warm_up, self.k)

@@ -238,6 +238,7 @@ def run_with_checkpoints(
     on_chunk: Callable[[State, Metrics], None] | None = None,
     on_start: Callable[[State, Metrics], None] | None = None,
     on_compiled: Callable[[], None] | None = None,
+    progress: Any = None,
 ) -> tuple[State, Metrics]:
     """`run_mqd` in chunks of `every` generations, saving a checkpoint at `path` after each.
 
@@ -246,8 +247,8 @@ def run_with_checkpoints(
     uninterrupted `run_mqd(key, cfg, params)`. `on_start(state, metrics)` is
     called before compiling with the state and metrics it starts from (empty
     unless resumed), `on_compiled()` once compiled, `on_chunk(state, metrics)`
-    after each chunk with the chunk's metrics (for progress output). Warns
-    like `run_mqd` at the end.
+    after each chunk with the chunk's metrics. `progress` (`mqd_jax.experiment.progress`: `Bar` for a bar; None:
+    nothing) is told where the run starts, the compilation and each chunk. Warns like `run_mqd` at the end.
     """
     if not (is_int(every) and every >= 1):
         raise ValueError(f"every={every!r} is invalid: expected an int >= 1")
@@ -260,10 +261,16 @@ def run_with_checkpoints(
     check_state(state, cfg)
     if on_start is not None:
         on_start(state, metrics)
+    if progress is not None:
+        progress.resume(int(state.generation), metrics)
     if int(state.generation) < cfg.max_generations:
+        if progress is not None:
+            progress.compiling()
         step = compile_chunk(state, cfg, params, every)
         if on_compiled is not None:
             on_compiled()
+        if progress is not None:
+            progress.compiled()
     while (done := int(state.generation)) < cfg.max_generations:
         todo = min(every, cfg.max_generations - done)
         state, chunk = step(state, params, todo)
@@ -272,5 +279,9 @@ def run_with_checkpoints(
         save(path, state, metrics, cfg, key)
         if on_chunk is not None:
             on_chunk(state, chunk)
+        if progress is not None:
+            progress.chunk(int(state.generation), chunk)
+    if progress is not None:
+        progress.close()
     diagnostics.warn(metrics, cfg, get_task(cfg))
     return state, metrics

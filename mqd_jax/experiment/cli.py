@@ -31,6 +31,7 @@ import shlex
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -42,7 +43,9 @@ from mqd_jax.core import algorithms, registry
 from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, get_task
 from mqd_jax.experiment import checkpoint, folders, migrations, plots, results, sweep
+from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.provenance import provenance
+from mqd_jax.version import __version__
 
 # Table II's columns, for `--preset`.
 COLUMNS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
@@ -187,63 +190,6 @@ def _positive(text: str) -> int:
     return value
 
 
-# Programs compiled or loaded (XLA's compile step, JAX's monitoring events) and the persistent cache's hits since
-# the process started: a start whose every program was a hit loaded them instead of compiling.
-_PROGRAMS, _CACHE_HIT = "/jax/core/compile/backend_compile_duration", "/jax/compilation_cache/cache_hits"
-_CACHE_EVENTS = dict.fromkeys((_PROGRAMS, _CACHE_HIT), 0)
-
-
-def _count_cache_event(event: str, *_: Any, **__: Any) -> None:
-    if event in _CACHE_EVENTS:
-        _CACHE_EVENTS[event] += 1
-
-
-jax.monitoring.register_event_listener(_count_cache_event)
-jax.monitoring.register_event_duration_secs_listener(_count_cache_event)
-
-
-class _Progress:
-    """Progress lines for chunks of metrics [generations] (one run) or [runs, generations] (a sweep).
-
-    Generations per second count from the end of compilation; `discarded`
-    (shown for emitters that report it) continues from the resumed metrics.
-    """
-
-    def __init__(self, label: str, total: int) -> None:
-        self.label, self.total = label, total
-        self.done, self.discarded, self.since, self.start = 0, 0, 0, time.perf_counter()
-
-    def resume(self, done: int, metrics: dict[str, np.ndarray]) -> None:
-        self.done = self.since = done
-        if "discarded" in metrics:
-            self.discarded = int(np.atleast_2d(metrics["discarded"]).sum(1).mean())
-
-    def compiling(self, cache: str) -> None:
-        print(f"{self.label}preparing the program (compiled once per config and machine; {cache}) ...", flush=True)
-        self.start, self.cache = time.perf_counter(), dict(_CACHE_EVENTS)
-
-    def compiled(self) -> None:
-        programs, hits = (_CACHE_EVENTS[e] - self.cache[e] for e in (_PROGRAMS, _CACHE_HIT))
-        done = ("compiled" if hits < programs else "loaded the compiled program from the cache" if programs
-                else "the program was ready (compiled earlier in this process)")
-        print(f"{self.label}{done} in {time.perf_counter() - self.start:.1f} s", flush=True)
-        self.start, self.since = time.perf_counter(), self.done
-
-    def chunk(self, done: int, m: dict[str, np.ndarray]) -> None:
-        self.done = done
-        cov = np.atleast_2d(m["coverage"])[:, -1]
-        spread = f" +- {cov.std():.3f}" if len(cov) > 1 else ""
-        discarded = ""
-        if "discarded" in m:
-            self.discarded += int(np.atleast_2d(m["discarded"]).sum(1).mean())  # per run
-            discarded = f"  discarded {self.discarded:6d}"
-        mean = lambda name: np.atleast_2d(m[name])[:, -1].mean()  # noqa: E731
-        rate = (done - self.since) / max(time.perf_counter() - self.start, 1e-9)
-        print(f"{self.label}generation {done:4d}/{self.total}  coverage {cov.mean():.3f}{spread}  "
-              f"size {mean('repertoire_size'):6.0f}  evaluations {mean('num_evaluations'):7.0f}"
-              f"{discarded}  {rate:.1f} gen/s", flush=True)
-
-
 def _say_removed(paths: list[str], why: str) -> None:
     """Says which files were removed, and which set aside (`folders.discard`: damaged files, kept as `.damaged`)."""
     aside = [p for p in paths if ".damaged" in os.path.basename(p)]
@@ -355,7 +301,7 @@ def _run(args: argparse.Namespace) -> None:
             cfg, seed = _config(args, defaults=_RUN_DEFAULTS), args.seed or 0
         key = jax.random.PRNGKey(seed)
         args.task_now = cfg.task_name
-        progress = _Progress("", cfg.max_generations)
+        progress = progress_lib.for_output("", cfg.max_generations, cfg, args.cache_folder)
         saved = _progress_of(path) if folders.is_file(path) else None
         stake = f"; its checkpoint holds {saved[0]} of {saved[1]} generations" if saved else ""
         _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": seed}, RUN_FILES,
@@ -390,6 +336,7 @@ def _run(args: argparse.Namespace) -> None:
             state, metrics = checkpoint.run_with_checkpoints(
                 key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
                 on_compiled=progress.compiled, on_chunk=chunk)
+            progress.close()
         except checkpoint.Refused as e:
             fresh = "The run's own command with --overwrite (in place of --resume)"
             try:
@@ -409,11 +356,11 @@ def _run(args: argparse.Namespace) -> None:
                           behaviors=rep.behaviors[:n], qualities=rep.qualities[:n], meta=np.asarray(description))
         title = f"{cfg.task}, {cfg.algorithm}, seed {seed}, {cfg.max_generations} generations"
         figure = plots.run_figure(get_task(cfg), metrics, rep.behaviors[:n], os.path.join(args.out, "run.png"),
-                                  title, description)
+                                  title, description, rep.qualities[:n])
         written = [f for f in RUN_FILES if f != "run.png" or figure]
         print(f"done: coverage {metrics['coverage'][-1]:.3f} ({meta['coverage_measured']}), "
               f"QD-score {metrics['qd_score'][-1]:.2f}, max quality {metrics['max_quality'][-1]:.3f}, "
-              f"mean quality {metrics['mean_quality'][-1]:.3f}, {n} skills, "
+              f"mean quality {metrics['mean_quality'][-1]:.3f}, {_count(n, 'skill')}, "
               f"{int(metrics['num_evaluations'][-1])} evaluations, "
               f"{time.perf_counter() - began:.1f} s (compilation included); wrote "
               + ", ".join(os.path.join(args.out, f) for f in [*written, folders.MANIFEST]))
@@ -485,7 +432,7 @@ def _sweep(args: argparse.Namespace) -> None:
                 print(f"{label}already in {args.out}, skipped")
                 _say_removed(folders.remove_written(args.out, [glob.escape(os.path.basename(part))]), "finished")
                 continue
-            progress = _Progress(label, cfg.max_generations)
+            progress = progress_lib.for_output(label, cfg.max_generations, cfg, args.cache_folder)
             where[:] = [f"in {label.rstrip(': ')}", progress]
             args.task_now = cfg.task_name
             begun, chunk = _resumed_batch(args, part, cfg, keys, progress)
@@ -495,6 +442,7 @@ def _sweep(args: argparse.Namespace) -> None:
                 cfg, keys, chunk=chunk, on_chunk=progress.chunk, on_compiled=progress.compiled, start=begun,
                 on_state=lambda s, m, cfg=cfg, keys=keys, part=part, chunk=chunk: checkpoint.save(
                     part, s, m, cfg, keys, chunk=chunk))
+            progress.close()
             wall = time.perf_counter() - start
             print(f"{label}done: coverage {metrics['coverage'][:, -1].mean():.3f} +- "
                   f"{metrics['coverage'][:, -1].std():.3f}, {metrics['num_evaluations'][:, -1].mean():.0f} "
@@ -506,7 +454,7 @@ def _sweep(args: argparse.Namespace) -> None:
 
 
 def _resumed_batch(args: argparse.Namespace, part: str, cfg: Config, keys: np.ndarray,
-                   progress: _Progress) -> tuple[tuple[State, dict[str, np.ndarray]] | None, int]:
+                   progress: progress_lib.Lines) -> tuple[tuple[State, dict[str, np.ndarray]] | None, int]:
     """Where a sweep's batch starts: from its checkpoint `part` (an interrupted batch: its states, metrics and
     chunk size, so it ends bit for bit as without the stop), or afresh (None, --chunk). A damaged checkpoint is set
     aside; one of another config or keys is refused unless --overwrite, which deletes it."""
@@ -614,12 +562,25 @@ def _plot(out: str, pair: tuple[int, int] | None = None, show: str | None = None
         plots.adaptation_figure(found, "steps", "adaptation steps", os.path.join(out, "fig4_adaptation_steps.png"))
 
 
+def _count(n: int, noun: str) -> str:
+    """'1 skill', '3 skills'."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _rounded(values: np.ndarray) -> list[float]:
+    """values as Python floats rounded to 3 decimals (float32's binary noise gone: 0.199, not 0.19900000095)."""
+    return [round(float(v), 3) for v in np.asarray(values, np.float64)]
+
+
 def _render(args: argparse.Namespace) -> None:
     """A skill of a `mqd run` folder as an animated GIF: the robot executing it, or a 2D task's behavior path."""
     # Offscreen OpenGL for MuJoCo's renderer unless the user chose a platform (read when mujoco is imported).
     os.environ.setdefault("MUJOCO_GL", "egl")
     if not os.path.isdir(args.dir):
         raise ValueError(f"{args.dir!r} does not exist: give the folder a `mqd run` wrote")
+    if folders.kind(args.dir) == "sweep":
+        raise ValueError(f"{args.dir!r} is a folder of `mqd sweep`: `mqd render` takes a folder of `mqd run` (`mqd "
+                         f"plot {args.dir}` draws a sweep's repertoires)")
     files = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
     missing = [f for f in files if not os.path.lexists(f)]
     if missing:
@@ -649,7 +610,8 @@ def _render(args: argparse.Namespace) -> None:
     elif 0 <= args.index < len(actions):
         index = args.index
     else:
-        raise ValueError(f"--index {args.index}: the repertoire holds {len(actions)} skills (0 to {len(actions) - 1})")
+        raise ValueError(f"--index {args.index}: the repertoire holds {_count(len(actions), 'skill')} (0 to "
+                         f"{len(actions) - 1})")
     out = args.out or os.path.join(args.dir, f"skill_{index}.gif")
     target = os.path.dirname(out) or "."
     if not out.lower().endswith(".gif") or not os.path.isdir(target):
@@ -658,8 +620,7 @@ def _render(args: argparse.Namespace) -> None:
     if not ours and os.path.lexists(out):
         raise ValueError(f"--out {out!r} exists: `mqd render` replaces only a GIF it wrote in a results folder; "
                          "remove it, or give another --out")
-    print(f"skill {index}: behavior {np.round(behaviors[index], 3).tolist()}, action "
-          f"{np.round(actions[index], 3).tolist()}")
+    print(f"skill {index}: behavior {_rounded(behaviors[index])}, action {_rounded(actions[index])}")
     with folders.lock(target, create=False) if ours else contextlib.nullcontext():
         if ours and folders.lexists(out) and os.path.basename(out) not in folders.written(target):
             raise ValueError(f"--out {out!r} is not written by mqd-jax there (not in its manifest), so it is not "
@@ -686,6 +647,7 @@ def _locked_plot(args: argparse.Namespace) -> None:
 
 def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
     parser = _Parser(prog="mqd", description="Model-Based Quality-Diversity search in JAX")
+    parser.add_argument("--version", action="version", version=f"mqd-jax {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     cache = _Parser(add_help=False)
     cache.add_argument("--no-cache", dest="cache", action="store_false",
@@ -740,7 +702,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
                     help="the most steps (rollouts) per goal (default: Table II's %(default)s)")
 
     pl = sub.add_parser("plot", help="tables and figures of a results folder")
-    pl.add_argument("dir")
+    pl.add_argument("dir", help="a results folder of `mqd sweep` (its tables and figures are written there)")
     pl.add_argument("--pair", type=int, nargs=2, metavar=("I", "J"), default=None,
                     help="Figure 2 shows behaviors I and J (1-based) of each task that has them (default: 1 and 2)")
 
@@ -751,8 +713,8 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     which.add_argument("--goal", type=float, nargs="+", metavar="B", default=None,
                        help="the skill whose behavior is nearest to this one (d numbers)")
     rd.add_argument("--out", default=None, help="the GIF to write (default: DIR/skill_<index>.gif)")
-    rd.add_argument("--width", type=_positive, default=320)
-    rd.add_argument("--height", type=_positive, default=240)
+    rd.add_argument("--width", type=_positive, default=320, help="the GIF's width in pixels (default: %(default)s)")
+    rd.add_argument("--height", type=_positive, default=240, help="the GIF's height in pixels (default: %(default)s)")
     return parser, {"run": run, "sweep": sw, "adapt": ad, "plot": pl, "render": rd}
 
 
@@ -811,6 +773,12 @@ def _callbacks_caught() -> Any:
         logger.propagate = propagate
 
 
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+                  line: str | None = None) -> None:
+    """A warning as one line, `warning: ...` (a `RunWarning` about the run, not the library's source line)."""
+    print(f"warning: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser, subparsers = _parser()
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -818,10 +786,11 @@ def main(argv: list[str] | None = None) -> None:
     if unknown:  # the subcommand's one line, not the top level's
         subparsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = argv
-    args.cache = compilation_cache(getattr(args, "cache", False))[1]
+    args.cache_folder, args.cache = compilation_cache(getattr(args, "cache", False))
     args.interrupted = lambda: "interrupted"  # run and sweep say where
     args.task_now = None  # the task running (run and sweep set it): what a callback's failure names
-    with _callbacks_caught() as callbacks:
+    with _callbacks_caught() as callbacks, warnings.catch_warnings():
+        warnings.showwarning = _show_warning
         try:
             _COMMANDS[args.command](args)
         except ValueError as e:  # invalid configuration or input: one line that says what, no traceback

@@ -1,5 +1,10 @@
 """Figures (matplotlib, the optional `plot` extra): a run, Figure 2, and Figures 3-4.
 
+A run's figure (`run_figure`, `of_state` for a state and its metrics, `run_fig` for the figure itself) shows
+coverage, QD-score and max and mean quality against rollouts, and the final repertoire coloured by quality with
+a colour bar (each pairwise projection for more than two behavior dimensions, over the task's layout where it
+has one); Figure 2 (`figure2`) the same per algorithm over a sweep's seeds, with their spread.
+
 Every function writes one PNG and returns its path, or returns None (saying
 so) when matplotlib is not installed: results files never depend on it.
 """
@@ -10,6 +15,7 @@ import io
 import json
 from typing import Any
 
+import jax
 import numpy as np
 
 from mqd_jax.adaptation import METHODS
@@ -76,72 +82,129 @@ def projections(dims: int, pair: tuple[int, int] | None = None) -> list[tuple[in
     return [(i, j) for i in range(dims) for j in range(i + 1, dims)]
 
 
-def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str, dims: tuple[int, int] = (0, 1)) -> None:
-    """Draws behaviors [N, d] over the task's behavior box on the axes `ax`: for d = 2 over `task.layout()`; for
-    d = 1 on a strip; for d > 2 their projection on the behavior dimensions `dims` (0-based; the layout, in the
-    first two dimensions, only on (0, 1)), labelled as such."""
+def repertoire(ax: Any, task: Task, behaviors: np.ndarray, title: str, dims: tuple[int, int] = (0, 1),
+               qualities: np.ndarray | None = None, limits: tuple[float, float] | None = None) -> Any:
+    """Draws behaviors [N, d] over the task's behavior box on the axes `ax`, coloured by qualities [N] (viridis,
+    within `limits`, by default theirs) where given: for d = 2 over `task.layout()`; for d = 1 on a strip; for
+    d > 2 their projection on the behavior dimensions `dims` (0-based; the layout, in the first two dimensions,
+    only on (0, 1)), labelled as such. The legend goes below the axes, never over a skill. Returns the scatter
+    (for a colour bar)."""
     d, (i, j) = task.behavior_dim, dims
     low, high = task.behavior_low, task.behavior_high
-    label = f"behaviors ({len(behaviors)})"
+    label = f"{len(behaviors)} skill{'' if len(behaviors) == 1 else 's'}"
+    colour: dict[str, Any] = {"c": "tab:blue"}
+    if qualities is not None:
+        lo, hi = limits if limits is not None else (float(np.min(qualities, initial=0.0)),
+                                                     float(np.max(qualities, initial=1.0)))
+        colour = {"c": qualities, "cmap": "viridis", "vmin": lo, "vmax": hi if hi > lo else lo + 1e-6}
     if d == 1:
-        ax.scatter(behaviors[:, 0], np.zeros(len(behaviors)), s=4, marker="|", c="tab:blue", label=label)
+        points = ax.scatter(behaviors[:, 0], np.zeros(len(behaviors)), s=30, marker="|", label=label, **colour)
         ax.set(xlim=(low[0], high[0]), ylim=(-1, 1), yticks=[], title=title, xlabel="behavior 1")
     else:
         if (i, j) == (0, 1):
             layout(ax, task)
-        ax.scatter(behaviors[:, i], behaviors[:, j], s=2, c="tab:blue", zorder=3, label=label)
+        points = ax.scatter(behaviors[:, i], behaviors[:, j], s=4, zorder=3, label=label, **colour)
         names = ("behavior x", "behavior y") if d == 2 else (f"behavior {i + 1}", f"behavior {j + 1}")
         ax.set(xlim=(low[i], high[i]), ylim=(low[j], high[j]), title=title if d == 2 else
                f"{title}\nprojection on behaviors {i + 1}, {j + 1} of {d}", xlabel=names[0], ylabel=names[1])
         if d == 2 or np.isclose(high[j] - low[j], high[i] - low[i]):
             ax.set_aspect("equal")
-    ax.legend(loc="upper right", fontsize=6, framealpha=0.7)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4, fontsize=7, frameon=False)
+    return points
+
+
+# The metrics panel's curves: (metric, label, axis).
+CURVES = (("coverage", "coverage", 0), ("qd_score", "QD-score", 1), ("max_quality", "max quality", 2),
+          ("mean_quality", "mean quality", 2))
+
+
+def metrics_panel(axes: Any, metrics: dict[str, np.ndarray], label: str | None = None) -> None:
+    """Coverage, QD-score, and max and mean quality against rollouts on three axes, from metrics [G] (one run)
+    or [S, G] (seeds: their mean and one standard deviation as a band; x: the mean rollouts)."""
+    x = np.atleast_2d(metrics["num_evaluations"]).mean(0)
+    for name, text, k in CURVES:
+        if name not in metrics:
+            continue
+        y = np.atleast_2d(metrics[name])
+        line, = axes[k].plot(x, y.mean(0), label=f"{label}, {text}" if label and k == 2 else label or text)
+        if y.shape[0] > 1:
+            axes[k].fill_between(x, y.mean(0) - y.std(0), y.mean(0) + y.std(0), alpha=0.2, color=line.get_color())
+        if k == 2 and label is None:
+            line.set_linestyle("-" if name == "max_quality" else "--")
+    for ax, ylabel in zip(axes, ("coverage", "QD-score", "quality"), strict=True):
+        ax.set(xlabel="rollouts", ylabel=ylabel, title=f"{ylabel} against rollouts")
+    axes[2].legend(fontsize=7)
+
+
+def run_fig(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray, title: str,
+            qualities: np.ndarray | None = None) -> Any:
+    """The figure of one run (not saved): the metrics panel (`metrics_panel`), and the final repertoire over the
+    layout coloured by quality with a colour bar (for d > 2 each pairwise projection), under `title`."""
+    plt = pyplot()
+    panels = projections(task.behavior_dim)
+    columns = min(4, 3 + len(panels))
+    rows = -(-(3 + len(panels)) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.6 * columns, 4.4 * rows), squeeze=False)
+    fig.suptitle(title)
+    axes = list(axes.flat)
+    metrics_panel(axes[:3], metrics)
+    limits = None if qualities is None or not len(qualities) else (float(np.min(qualities)),
+                                                                     float(np.max(qualities)))
+    for ax, dims in zip(axes[3:], panels, strict=False):
+        points = repertoire(ax, task, behaviors, "final repertoire", dims, qualities, limits)
+        if qualities is not None:
+            fig.colorbar(points, ax=ax, label="quality", shrink=0.85)
+    for ax in axes[3 + len(panels):]:
+        ax.axis("off")
+    return fig
 
 
 def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray, path: str, title: str,
-               description: str | None = None) -> str | None:
-    """One run: coverage against evaluations, and the final repertoire over the layout (for d > 2 each pairwise
-    projection), under `title`."""
-    plt = pyplot()
-    if plt is None:
+               description: str | None = None, qualities: np.ndarray | None = None) -> str | None:
+    """Writes `run_fig` to `path` (PNG) and returns it, or None without matplotlib."""
+    if pyplot() is None:
         return None
-    panels = projections(task.behavior_dim)
-    columns = min(4, 1 + len(panels))
-    rows = -(-(1 + len(panels)) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(5 * columns, 4.5 * rows), squeeze=False)
-    fig.suptitle(title)
-    axes = axes.flat
-    axes[0].plot(metrics["num_evaluations"], metrics["coverage"])
-    axes[0].set(xlabel="evaluations", ylabel="coverage")
-    for ax, dims in zip(axes[1:], panels, strict=False):
-        repertoire(ax, task, behaviors, "final repertoire", dims)
-    for ax in axes[1 + len(panels):]:
-        ax.axis("off")
-    return save(fig, path, description)
+    return save(run_fig(task, metrics, behaviors, title, qualities), path, description)
+
+
+def of_state(state: Any, metrics: dict[str, Any], cfg: Any, path: str, title: str | None = None) -> str | None:
+    """`run_figure` of a run's final `state` and its `metrics` (what `run_mqd(key, cfg)` returns) to `path`."""
+    from mqd_jax.core.run import get_task
+
+    rep = jax.device_get(state.repertoire)
+    n = int(rep.count)
+    title = title or f"{cfg.task_name}, {cfg.algorithm_name}, {len(np.asarray(metrics['coverage']))} generations"
+    return run_figure(get_task(cfg), {k: np.asarray(v) for k, v in metrics.items()}, np.asarray(rep.behaviors[:n]),
+                      path, title, qualities=np.asarray(rep.qualities[:n]))
 
 
 def figure2(task: Task, name: str, runs: dict[str, Runs], path: str, pair: tuple[int, int] | None = None) -> str | None:
-    """Figure 2 for one task: coverage against evaluations (mean over seeds and one std band; x: the mean
-    evaluations at each generation) per algorithm, and seed 0's final repertoire of each over the layout (for
-    d > 2 its projection on `pair`, by default the first two behavior dimensions)."""
+    """Figure 2 for one task: coverage, QD-score and quality against rollouts (mean over seeds and one std band;
+    x: the mean rollouts at each generation) per algorithm, and seed 0's final repertoire of each over the layout,
+    coloured by quality on one scale with a colour bar (for d > 2 its projection on `pair`, by default the first
+    two behavior dimensions)."""
     plt = pyplot()
     if plt is None:
         return None
-    fig, axes = plt.subplots(1, 1 + len(runs), figsize=(4.6 * (1 + len(runs)), 4.4))
+    fig, axes = plt.subplots(1, 3 + len(runs), figsize=(4.6 * (3 + len(runs)), 4.6))
+    fig.suptitle(f"{name}: {', '.join(f'{NAMES[a]} ({len(r.keys)} seeds)' for a, r in runs.items())}")
     for alg, r in runs.items():
-        x, cov = r.metrics["num_evaluations"].mean(0), r.metrics["coverage"]
-        axes[0].plot(x, cov.mean(0), label=f"{NAMES[alg]} ({len(r.keys)} seeds)")
-        axes[0].fill_between(x, cov.mean(0) - cov.std(0), cov.mean(0) + cov.std(0), alpha=0.25)
-    axes[0].set(xlabel="evaluations", ylabel="coverage", title=name)
-    axes[0].legend()
-    for ax, (alg, r) in zip(axes[1:], runs.items(), strict=True):
-        repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES[alg]}, seed 0",
-                   projections(task.behavior_dim, pair)[0])
+        metrics_panel(axes[:3], r.metrics, NAMES[alg])
+    for ax in axes[:2]:
+        ax.legend(fontsize=7)
+    seed0 = [r.qualities[0, :r.count[0]] for r in runs.values()]
+    limits = (float(min(np.min(q, initial=np.inf) for q in seed0)), float(max(np.max(q, initial=-np.inf)
+                                                                             for q in seed0)))
+    limits = limits if np.isfinite(limits).all() else None
+    for ax, (alg, r), q in zip(axes[3:], runs.items(), seed0, strict=True):
+        points = repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES[alg]}, seed 0",
+                            projections(task.behavior_dim, pair)[0], q, limits)
+    fig.colorbar(points, ax=axes[-1], label="quality (one scale for all)", shrink=0.85)
     return save(fig, path)
 
 
 def adaptation_figure(results: dict[str, dict[str, dict[str, list[float]]]], metric: str, label: str,
-                      path: str) -> str | None:
+                      path: str, title: str | None = None) -> str | None:
     """Figures 3 ("error") and 4 ("steps"): per task, a bar per method, mean and std over repertoires."""
     plt = pyplot()
     if plt is None:
@@ -154,6 +217,7 @@ def adaptation_figure(results: dict[str, dict[str, dict[str, list[float]]]], met
         ax.bar(np.arange(len(results)) + j * width, means, width, yerr=stds, capsize=3, label=method)
     ax.set_xticks(np.arange(len(results)) + width * (len(METHODS) - 1) / 2, list(results))
     ax.set_ylabel(label)
+    ax.set_title(title or f"adaptation: {label} per task and method")
     # Outside the axes, so that no bar or error bar is hidden behind it.
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
     return save(fig, path)

@@ -323,6 +323,7 @@ class Runs:
       metrics: name -> [S, G] float array (NaN where null).
       count: [S] final repertoire sizes.
       behaviors: [S, M, d] final behaviors (rows past count: padding).
+      qualities: [S, M] their qualities (rows past count: padding).
     """
 
     cfg: Config
@@ -332,6 +333,7 @@ class Runs:
     metrics: dict[str, np.ndarray]
     count: np.ndarray
     behaviors: np.ndarray
+    qualities: np.ndarray
 
     def final(self, name: str) -> np.ndarray:
         """[S] the metric `name` after the last generation."""
@@ -369,7 +371,7 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
         metrics = {k: np.array(v, dtype=float) for k, v in saved["metrics"].items()}
         found.setdefault(cfg.task_name, {})[cfg.algorithm] = Runs(
             cfg, np.asarray(saved["keys"], np.uint32), saved["wall_s"], saved["machine"], metrics, rep["count"],
-            rep["behaviors"])
+            rep["behaviors"], rep["qualities"])
     if not found:
         raise ValueError(f"{out!r} holds no sweep results (<task>_<algorithm>.json with .npz): run `mqd sweep` first")
     return {task: dict(sorted(found[task].items(), key=lambda kv: algorithms.names().index(kv[0])))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import itertools
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -109,6 +110,7 @@ def run_batch(
     on_compiled: Callable[[], None] | None = None,
     start: tuple[State, Metrics] | None = None,
     on_state: Callable[[State, Metrics], None] | None = None,
+    progress: Any = None,
 ) -> tuple[State, Metrics]:
     """R runs of `cfg`, vmapped and sharded over the devices.
 
@@ -129,6 +131,8 @@ def run_batch(
       on_state: called after each chunk, before `on_chunk`, with the states
         (numpy, leading [R]) and every metric so far ([R, done]): what a
         checkpoint of the batch holds.
+      progress: told where the batch starts, of the compilation and of each chunk
+        (`mqd_jax.experiment.progress`: `Bar` for a bar; None: nothing).
 
     Returns:
       The final states (every array with a leading [R] axis, on the devices)
@@ -164,9 +168,14 @@ def run_batch(
         states = jax.tree.map(lambda x: _shard(pad(np.asarray(x)), sharding), start[0])
         parts = [dict(start[1])] if start[1] else []
     params = jax.tree.map(lambda x: _shard(pad(np.asarray(x, np.float32)), sharding), params)
+    if progress is not None:
+        progress.resume(sum(p["coverage"].shape[1] for p in parts), parts[0] if parts else {})
+        progress.compiling()
     step = _chunk.lower(states, params, jnp.int32(chunk), cfg, chunk).compile()
     if on_compiled is not None:
         on_compiled()
+    if progress is not None:
+        progress.compiled()
     while (done := sum(p["coverage"].shape[1] for p in parts)) < cfg.max_generations:
         todo = min(chunk, cfg.max_generations - done)
         states, metrics = step(states, params, jnp.int32(todo))
@@ -176,6 +185,10 @@ def run_batch(
                      {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[-1]})
         if on_chunk is not None:
             on_chunk(done + todo, parts[-1])
+        if progress is not None:
+            progress.chunk(done + todo, parts[-1])
+    if progress is not None:
+        progress.close()
     states = jax.tree.map(lambda x: x[:runs], states)
     metrics = {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[0]}
     diagnostics.warn(metrics, cfg, get_task(cfg))
