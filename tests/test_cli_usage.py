@@ -6,6 +6,7 @@ import os
 import re
 import subprocess
 import sys
+import warnings
 
 import jax
 import numpy as np
@@ -168,13 +169,14 @@ def test_version_and_did_you_mean_for_tasks_algorithms_and_plugins(capsys, refus
             "is 'no_such_package' on the Python path? Run from the folder that holds it with PYTHONPATH=.")
 
 
-def test_a_run_warning_is_one_line_without_the_librarys_source(capsys):
-    import warnings
-
+def test_a_run_warning_is_one_line_without_the_librarys_source(monkeypatch):
+    """The command line formats warnings as `warning: ...` while a command runs (not the file and source line
+    Python prints by default), and restores Python's own afterwards."""
     from mqd_jax.core.diagnostics import RunWarning
 
-    with warnings.catch_warnings():
-        warnings.showwarning = cli._show_warning
-        warnings.warn("3 new niches were dropped", RunWarning, stacklevel=1)
-    err = capsys.readouterr().err
-    assert err == "warning: 3 new niches were dropped\n"
+    assert cli._format_warning(RunWarning("3 new niches were dropped"), RunWarning, "/lib/x.py", 9) == \
+        "warning: 3 new niches were dropped\n"
+    seen = []
+    monkeypatch.setitem(cli._COMMANDS, "plot", lambda args: seen.append(warnings.formatwarning))
+    cli.main(["plot", "nowhere"])
+    assert seen == [cli._format_warning] and warnings.formatwarning is not cli._format_warning

@@ -773,10 +773,20 @@ def _callbacks_caught() -> Any:
         logger.propagate = propagate
 
 
-def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
-                  line: str | None = None) -> None:
+def _format_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                    line: str | None = None) -> str:
     """A warning as one line, `warning: ...` (a `RunWarning` about the run, not the library's source line)."""
-    print(f"warning: {message}", file=sys.stderr if file is None else file, flush=True)
+    return f"warning: {message}\n"
+
+
+@contextlib.contextmanager
+def _one_line_warnings() -> Any:
+    """Warnings formatted by `_format_warning` while a command runs; Python's own formatting afterwards."""
+    own, warnings.formatwarning = warnings.formatwarning, _format_warning
+    try:
+        yield
+    finally:
+        warnings.formatwarning = own
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -789,8 +799,7 @@ def main(argv: list[str] | None = None) -> None:
     args.cache_folder, args.cache = compilation_cache(getattr(args, "cache", False))
     args.interrupted = lambda: "interrupted"  # run and sweep say where
     args.task_now = None  # the task running (run and sweep set it): what a callback's failure names
-    with _callbacks_caught() as callbacks, warnings.catch_warnings():
-        warnings.showwarning = _show_warning
+    with _callbacks_caught() as callbacks, _one_line_warnings():
         try:
             _COMMANDS[args.command](args)
         except ValueError as e:  # invalid configuration or input: one line that says what, no traceback

@@ -86,7 +86,8 @@ class Lines(Progress):
     def compiling(self, cache: str = "", last: float | None = None) -> None:
         last = last if last is not None or self.cfg is None else last_compile(self.folder, self.cfg)
         before = "" if last is None else f"; the last compile of this config here took {last:.1f} s"
-        print(f"{self.label}compiling the program (once per config and machine; {cache}{before}) ...", flush=True)
+        print(f"{self.label}preparing the program (compiled once per config and machine; {cache}{before}) ...",
+              flush=True)
         self.start, self.cache = time.perf_counter(), dict(_CACHE_EVENTS)
 
     def compiled(self) -> None:
