@@ -24,12 +24,12 @@ from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.averages import running_average
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.task import Task
-from mqd_jax.emitters.parts import Candidates, Part, View
+from mqd_jax.emitters.parts import Part, Pooled, View
 from mqd_jax.surrogate import model as model_lib
 
 MODES = ("always", "auto")
 ANCHORS = ("parent", "nearest")
-# The weight of a generation's held-out error in anchoring="auto"'s averages.
+# The weight of a generation's held-out error in Anchoring("auto")'s averages.
 ERROR_AVERAGING = 0.2
 
 
@@ -67,7 +67,7 @@ class Anchoring(Part):
         """The averaged errors before any: [2] NaN (plain, anchored) for "auto", else ()."""
         return jnp.full(2, jnp.nan, jnp.float32) if self.mode == "auto" else ()
 
-    def predicted(self, state: Any, y: jax.Array, candidates: Candidates, view: View) -> tuple[jax.Array, Any]:
+    def predicted(self, state: Any, y: jax.Array, candidates: Pooled, view: View) -> tuple[jax.Array, Any]:
         """The predictions [E, N, d + 1] this part trusts, from the plain ones y (as the surrogate's `overrule`
         leaves them), and ("auto") both predictions' behaviors [N, 2, d] for the held-out errors."""
         anchored = self.anchored(candidates, view)
@@ -76,7 +76,7 @@ class Anchoring(Part):
         both = jnp.stack([y.mean(axis=0)[:, :-1], anchored.mean(axis=0)[:, :-1]], axis=1)
         return jnp.where(state[1] < state[0], anchored, y), both
 
-    def anchored(self, candidates: Candidates, view: View) -> jax.Array:
+    def anchored(self, candidates: Pooled, view: View) -> jax.Array:
         """The members' anchored predictions [E, N, d + 1] of the candidates, as the surrogate's `overrule`
         leaves them: at the parents' slots (-1: not anchored) with anchor="parent" where the pool names parents,
         else at the nearest skills."""

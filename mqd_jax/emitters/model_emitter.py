@@ -46,7 +46,7 @@ from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.core.task import Task
 from mqd_jax.emitters import acquisition, contracts, parts
 from mqd_jax.emitters.anchoring import prediction_error
-from mqd_jax.emitters.parts import Candidates, ModelInfo, View
+from mqd_jax.emitters.parts import ModelInfo, Pooled, View
 from mqd_jax.surrogate import protocol
 from mqd_jax.surrogate.surrogate import Surrogate
 from mqd_jax.surrogate.validity import auc
@@ -199,7 +199,7 @@ class ModelEmitter(Emitter):
         surrogate inputs x) as the chain's predict stages leave them, and each part's info of that stage."""
         members = self.model.members(state.surrogate, actions, view.task, x)
         y = self.model.overrule(state.surrogate, x, members, view.task)
-        candidates, infos = Candidates(actions, parents, x, members), {}
+        candidates, infos = Pooled(actions, parents, x, members), {}
         for part in self.parts:
             y, infos[part.name] = part.predicted(state.parts[part.name], y, candidates, view)
         return y, infos

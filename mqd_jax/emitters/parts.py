@@ -58,7 +58,7 @@ class View:
 
 
 @pytree.dataclass
-class Candidates:
+class Pooled:
     """A pool's candidates as the predict stage sees them (N rows).
 
     Attributes:
@@ -126,7 +126,7 @@ class Part:
     def pool(self, key: jax.Array, state: Any, pool: Proposal, view: View) -> tuple[Proposal, Any]:
         return pool, ()
 
-    def predicted(self, state: Any, y: jax.Array, candidates: Candidates, view: View) -> tuple[jax.Array, Any]:
+    def predicted(self, state: Any, y: jax.Array, candidates: Pooled, view: View) -> tuple[jax.Array, Any]:
         return y, ()
 
     def update(self, state: Any, info: Any, proposal: Proposal, evaluated: Evaluated) -> Any:

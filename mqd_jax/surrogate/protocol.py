@@ -27,7 +27,7 @@ Optionally:
 * `check_task(task)`: raise ValueError for a task the surrogate cannot serve, before anything is traced.
 
 What is not the surrogate's: warm-up (when `fit` is first called), anchoring (predicting from a known skill's
-outcome: `ModelEmitter.anchoring`), the held-out prediction error and what the rules make of predictions.
+outcome: the part `Anchoring`), the held-out prediction error and what the rules make of predictions.
 The model emitter does those around any surrogate. The built-in `mqd_jax.surrogate.surrogate.Surrogate`
 (a network or ensemble, with task features, a gate and a validity classifier) keeps the protocol and a few
 more hooks of its own (`Hooks`); `hooks(surrogate)` gives the emitter the same hooks for any surrogate, with
