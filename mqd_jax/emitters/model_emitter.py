@@ -245,13 +245,12 @@ class ModelEmitter(Emitter):
             from_model = jnp.ones(num, bool)
             if share is not None:
                 rows, rollout, from_model = _share(rows, pool.rollout, share, view.warm_up, num)
-        keep = lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x  # noqa: E731
         # The kept rows' predicted distances (the opener AUC's score) searched for them alone, as judgement.distance
         # would give them: a rule that reads no distances (Budgeted) then does not pay for a search of the pool.
         kept_sq, _ = repertoire_lib.k_nearest(repertoire, judgement.behaviors[rows], 1)
-        info = ModelInfo(jax.tree.map(keep, pool.info), judgement.behaviors[rows], jnp.sqrt(kept_sq[:, 0]), from_model,
-                         discarded, None if judgement.validity is None else judgement.validity[rows],
-                         {name: parts.kept((pooled[name], predicted[name]), rows) for name in pooled})
+        info = ModelInfo(parts.kept(pool.info, rows, pool_size), judgement.behaviors[rows], jnp.sqrt(kept_sq[:, 0]),
+                         from_model, discarded, None if judgement.validity is None else judgement.validity[rows],
+                         {name: parts.kept((pooled[name], predicted[name]), rows, pool_size) for name in pooled})
         return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows],
                         x[rows, task.action_dim:] if self.keeps_features(task) else None)
 

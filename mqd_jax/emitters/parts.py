@@ -195,9 +195,10 @@ def shared(parts: tuple[Any, ...]) -> bool:
     return any(part.shares for part in parts)
 
 
-def kept(info: Any, rows: jax.Array) -> Any:
-    """A part's info with the chosen rows [num] of every leaf (each leaf's leading axis is the pool's)."""
-    return jax.tree.map(lambda x: x[rows], info)
+def kept(info: Any, rows: jax.Array, pool_size: int) -> Any:
+    """`info` with the chosen rows [num] of every leaf whose leading axis is the pool's (`pool_size`: a part's
+    every leaf, the inner emitter's per-candidate ones), the other leaves as they are."""
+    return jax.tree.map(lambda x: x[rows] if jnp.ndim(x) and jnp.shape(x)[0] == pool_size else x, info)
 
 
 def model_share(parts: tuple[Any, ...], states: dict[str, Any]) -> jax.Array | None:

@@ -140,7 +140,7 @@ class SideBySide(Emitter):
                         for i, m in enumerate(self.members))
         return SideBySideState(members, self.shares.init(key, task) if self.adaptive else ())
 
-    def _rows(self, state: SideBySideState, num: int) -> tuple[list[jax.Array], list[jax.Array]]:
+    def _rows(self, state: SideBySideState, num: int) -> list[jax.Array]:
         """For each member, the generation's row each of its proposed rows becomes ([count_i] int32; num where
         it is not taken)."""
         counts = self.counts(num)
@@ -160,18 +160,18 @@ class SideBySide(Emitter):
 
         def placed(get: Any) -> jax.Array:
             """The generation's [num, ...] rows from each member's rows where they are taken."""
-            first = get(proposals[0], 0)
+            first = get(proposals[0])
             out = jnp.zeros((num, *first.shape[1:]), first.dtype)
-            for i, (proposal, at) in enumerate(zip(proposals, rows, strict=True)):
-                out = out.at[at].set(get(proposal, i), mode="drop")
+            for proposal, at in zip(proposals, rows, strict=True):
+                out = out.at[at].set(get(proposal), mode="drop")
             return out
 
         features = None
         if self.keeps_features(task):
-            features = placed(lambda p, i: task.features(p.actions) if p.features is None else p.features)
-        parents = placed(lambda p, i: jnp.full(p.actions.shape[0], -1, jnp.int32) if p.parents is None
+            features = placed(lambda p: task.features(p.actions) if p.features is None else p.features)
+        parents = placed(lambda p: jnp.full(p.actions.shape[0], -1, jnp.int32) if p.parents is None
                          else p.parents.astype(jnp.int32))
-        return Proposal(placed(lambda p, i: p.actions), placed(lambda p, i: p.rollout),
+        return Proposal(placed(lambda p: p.actions), placed(lambda p: p.rollout),
                         tuple(p.info for p in proposals), parents, features)
 
     def update(self, key: jax.Array, state: SideBySideState, proposal: Proposal, evaluated: Evaluated,

@@ -263,6 +263,21 @@ def run_with_checkpoints(
         on_start(state, metrics)
     if progress is not None:
         progress.resume(int(state.generation), metrics)
+
+    def saved(state: State, metrics: Metrics, chunk: Metrics) -> None:
+        save(path, state, metrics, cfg, key)
+        if on_chunk is not None:
+            on_chunk(state, chunk)
+
+    return run_chunks(state, metrics, cfg, params, every, progress, on_compiled, saved)
+
+
+def run_chunks(state: State, metrics: Metrics, cfg: Config, params: Params, every: int, progress: Any = None,
+               on_compiled: Callable[[], None] | None = None,
+               after: Callable[[State, Metrics, Metrics], None] | None = None) -> tuple[State, Metrics]:
+    """`state` (with its metrics so far) run on to `cfg.max_generations` in chunks of `every` generations, one
+    compiled chunk (`compile_chunk`): after each, `after(state, the metrics so far, the chunk's)`, then
+    `progress.chunk`; `progress` is told of the compilation and closed at the end. Warns like `run_mqd`."""
     if int(state.generation) < cfg.max_generations:
         if progress is not None:
             progress.compiling()
@@ -276,9 +291,8 @@ def run_with_checkpoints(
         state, chunk = step(state, params, todo)
         chunk = {k: np.asarray(v)[:todo] for k, v in chunk.items()}
         metrics = {k: np.concatenate([metrics[k], v]) if k in metrics else v for k, v in chunk.items()}
-        save(path, state, metrics, cfg, key)
-        if on_chunk is not None:
-            on_chunk(state, chunk)
+        if after is not None:
+            after(state, metrics, chunk)
         if progress is not None:
             progress.chunk(int(state.generation), chunk)
     if progress is not None:

@@ -20,10 +20,9 @@ from typing import Any
 import jax
 import numpy as np
 
-from mqd_jax.core import diagnostics
 from mqd_jax.core.config import Config, check_params
-from mqd_jax.core.run import get_task, init
-from mqd_jax.experiment.checkpoint import compile_chunk
+from mqd_jax.core.run import init
+from mqd_jax.experiment.checkpoint import run_chunks
 
 
 class Progress:
@@ -127,7 +126,6 @@ class Bar(Lines):
         from tqdm.auto import tqdm
 
         super().__init__(label, total, cfg, folder)
-
         self.bar = tqdm(total=total, desc=label.rstrip(": ") or "run", unit="gen", dynamic_ncols=True, leave=True)
 
     def resume(self, done: int, metrics: dict[str, np.ndarray]) -> None:
@@ -202,22 +200,9 @@ def run(key: jax.Array, cfg: Config, params: Any = None, chunk: int | None = Non
     """`run_mqd(key, cfg, params)` in chunks of `chunk` generations (default: a twentieth of the run), calling
     `progress` (`Bar("", cfg.max_generations)` for a bar) as it goes; the same result bit for bit (one compiled
     chunk, as `checkpoint.run_with_checkpoints` runs, without its file). Metrics as numpy arrays [generations]."""
-
     progress = progress or Progress()
     params = cfg.params() if params is None else params
     check_params(params, cfg)
-    every = chunk or max(1, cfg.max_generations // 20)
-    state, parts = init(key, cfg), []
+    state = init(key, cfg)
     progress.resume(0, {})
-    progress.compiling()
-    step = compile_chunk(state, cfg, params, every)
-    progress.compiled()
-    while (done := int(state.generation)) < cfg.max_generations:
-        todo = min(every, cfg.max_generations - done)
-        state, metrics = step(state, params, todo)
-        parts.append({k: np.asarray(v)[:todo] for k, v in metrics.items()})
-        progress.chunk(done + todo, parts[-1])
-    progress.close()
-    metrics = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    diagnostics.warn(metrics, cfg, get_task(cfg))
-    return state, metrics
+    return run_chunks(state, {}, cfg, params, chunk or max(1, cfg.max_generations // 20), progress)
