@@ -281,11 +281,11 @@ def _run(args: argparse.Namespace) -> None:
                          "starts it afresh; give one")
     path = os.path.join(args.out, "checkpoint.msgpack")
     resume = f"mqd run --resume --out {shlex.quote(args.out)}"
-    done = [0]
+    watched = [progress_lib.Progress()]  # the run's progress, once it has one: its `done` generations are saved
 
     def interrupted() -> str:
-        if done[0]:
-            return f"interrupted at generation {done[0]}; `{resume}` continues from there"
+        if watched[0].done:
+            return f"interrupted at generation {watched[0].done}; `{resume}` continues from there"
         kept = os.path.lexists(path)
         return ("interrupted before a generation was saved; " +
                 (f"the checkpoint already in {args.out} is kept as it was" if kept else "nothing was saved"))
@@ -301,7 +301,7 @@ def _run(args: argparse.Namespace) -> None:
             cfg, seed = _config(args, defaults=_RUN_DEFAULTS), args.seed or 0
         key = jax.random.PRNGKey(seed)
         args.task_now = cfg.task_name
-        progress = progress_lib.for_output("", cfg.max_generations, cfg, args.cache_folder)
+        progress = progress_lib.for_output("", cfg.max_generations, cfg, args.cache_folder, args.cache)
         saved = _progress_of(path) if folders.is_file(path) else None
         stake = f"; its checkpoint holds {saved[0]} of {saved[1]} generations" if saved else ""
         _say_removed(folders.claim(args.out, "run", {"config": cfg.to_dict(), "seed": seed}, RUN_FILES,
@@ -322,21 +322,12 @@ def _run(args: argparse.Namespace) -> None:
         def start(state: State, metrics: dict[str, np.ndarray]) -> None:
             if metrics:
                 print(f"resuming at generation {int(state.generation)} of {cfg.max_generations} from {path}")
-            progress.resume(int(state.generation), metrics)
-            done[0] = progress.done
-            if int(state.generation) < cfg.max_generations:
-                progress.compiling(args.cache)
-
-        def chunk(state: State, metrics: dict[str, np.ndarray]) -> None:
-            done[0] = int(state.generation)
-            progress.chunk(done[0], metrics)
+            watched[0] = progress
 
         began = time.perf_counter()
         try:
-            state, metrics = checkpoint.run_with_checkpoints(
-                key, cfg, path, every=args.chunk, resume=args.resume, on_start=start,
-                on_compiled=progress.compiled, on_chunk=chunk)
-            progress.close()
+            state, metrics = checkpoint.run_with_checkpoints(key, cfg, path, every=args.chunk, resume=args.resume,
+                                                             on_start=start, progress=progress)
         except checkpoint.Refused as e:
             fresh = "The run's own command with --overwrite (in place of --resume)"
             try:
@@ -432,17 +423,15 @@ def _sweep(args: argparse.Namespace) -> None:
                 print(f"{label}already in {args.out}, skipped")
                 _say_removed(folders.remove_written(args.out, [glob.escape(os.path.basename(part))]), "finished")
                 continue
-            progress = progress_lib.for_output(label, cfg.max_generations, cfg, args.cache_folder)
+            progress = progress_lib.for_output(label, cfg.max_generations, cfg, args.cache_folder, args.cache)
             where[:] = [f"in {label.rstrip(': ')}", progress]
             args.task_now = cfg.task_name
             begun, chunk = _resumed_batch(args, part, cfg, keys, progress)
-            progress.compiling(args.cache)
             start = time.perf_counter()
             states, metrics = sweep.run_batch(
-                cfg, keys, chunk=chunk, on_chunk=progress.chunk, on_compiled=progress.compiled, start=begun,
+                cfg, keys, chunk=chunk, start=begun, progress=progress,
                 on_state=lambda s, m, cfg=cfg, keys=keys, part=part, chunk=chunk: checkpoint.save(
                     part, s, m, cfg, keys, chunk=chunk))
-            progress.close()
             wall = time.perf_counter() - start
             print(f"{label}done: coverage {metrics['coverage'][:, -1].mean():.3f} +- "
                   f"{metrics['coverage'][:, -1].std():.3f}, {metrics['num_evaluations'][:, -1].mean():.0f} "
@@ -481,7 +470,6 @@ def _resumed_batch(args: argparse.Namespace, part: str, cfg: Config, keys: np.nd
         print(f"{progress.label}continues in chunks of {chunk} generations, as it began (--chunk {args.chunk} is "
               "taken by batches that start afresh), so that it ends bit for bit as without the stop")
     print(f"{progress.label}resuming at generation {done} of {cfg.max_generations} from {part}")
-    progress.resume(done, metrics)
     return (states, metrics), chunk
 
 

@@ -71,10 +71,12 @@ class Lines(Progress):
     (shown for emitters that report it) continues from the resumed metrics.
     """
 
-    def __init__(self, label: str, total: int, cfg: Config | None = None, folder: str | None = None) -> None:
+    def __init__(self, label: str, total: int, cfg: Config | None = None, folder: str | None = None,
+                 cache_note: str = "") -> None:
         self.label, self.total = label, total
-        # Where a compile's time is remembered (the compilation cache's folder) and for which config.
-        self.cfg, self.folder = cfg, folder
+        # Where a compile's time is remembered (the compilation cache's folder) and for which config; what the
+        # compile line says of the cache.
+        self.cfg, self.folder, self.cache_note = cfg, folder, cache_note
         self.done, self.discarded, self.since, self.start = 0, 0, 0, time.perf_counter()
 
     def resume(self, done: int, metrics: dict[str, np.ndarray]) -> None:
@@ -85,8 +87,8 @@ class Lines(Progress):
     def compiling(self, cache: str = "", last: float | None = None) -> None:
         last = last if last is not None or self.cfg is None else last_compile(self.folder, self.cfg)
         before = "" if last is None else f"; the last compile of this config here took {last:.1f} s"
-        print(f"{self.label}preparing the program (compiled once per config and machine; {cache}{before}) ...",
-              flush=True)
+        print(f"{self.label}preparing the program (compiled once per config and machine; {cache or self.cache_note}"
+              f"{before}) ...", flush=True)
         self.start, self.cache = time.perf_counter(), dict(_CACHE_EVENTS)
 
     def compiled(self) -> None:
@@ -122,10 +124,11 @@ class Bar(Lines):
     """A progress bar (tqdm: generations done, their rate and the time left, the latest coverage), the lines of
     compilation as `Lines` prints them."""
 
-    def __init__(self, label: str, total: int, cfg: Config | None = None, folder: str | None = None) -> None:
+    def __init__(self, label: str, total: int, cfg: Config | None = None, folder: str | None = None,
+                 cache_note: str = "") -> None:
         from tqdm.auto import tqdm
 
-        super().__init__(label, total, cfg, folder)
+        super().__init__(label, total, cfg, folder, cache_note)
         self.bar = tqdm(total=total, desc=label.rstrip(": ") or "run", unit="gen", dynamic_ncols=True, leave=True)
 
     def resume(self, done: int, metrics: dict[str, np.ndarray]) -> None:
@@ -142,15 +145,17 @@ class Bar(Lines):
         self.bar.close()
 
 
-def for_output(label: str, total: int, cfg: Config | None = None, folder: str | None = None) -> Lines:
+def for_output(label: str, total: int, cfg: Config | None = None, folder: str | None = None,
+               cache_note: str = "") -> Lines:
     """`Bar` where standard output is a terminal and tqdm is installed (the `plot` extra), else `Lines`; either
-    remembers how long `cfg`'s compile took in `folder` (the compilation cache's) and says it the next time."""
+    remembers how long `cfg`'s compile took in `folder` (the compilation cache's) and says it the next time, and
+    says `cache_note` of the cache."""
     if sys.stdout.isatty():
         try:
-            return Bar(label, total, cfg, folder)
+            return Bar(label, total, cfg, folder, cache_note)
         except ImportError:
             pass
-    return Lines(label, total, cfg, folder)
+    return Lines(label, total, cfg, folder, cache_note)
 
 
 # The compile times the command line remembers, per config, in the compilation cache's folder.
