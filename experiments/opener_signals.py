@@ -1,7 +1,7 @@
 """Which signals tell a niche-opener from the rest of a pool, and how rugged a task is under QD's mutation.
 
     python experiments/opener_signals.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 2]
-        [--pools 4] [--out docs/data/opener_signals.md]
+        [--pools 4] [--out docs/data/opener_signals_v20.md]
 
 For each task and seed: a run of the "mqd" preset for `--generations` generations, then `--pools`
 pools of 8 x 100 IsoLine children of its final repertoire (what "mqd" chooses its rollouts
@@ -23,7 +23,12 @@ error (MSE over the pools' valid children); and a
 classifier of openers (a network of 64 units fitted for 3000 steps of 64 rows to +1 for an
 opener and -1 for the rest) trained on the seed's other pools, every child of which was rolled
 out, and scored on the held-out pool: what a model of the action alone can learn of "would open
-a niche" from more labelled rollouts of the same repertoire than a run ever has. And
+a niche" from more labelled rollouts of the same repertoire than a run ever has. Three leads of issue 68:
+the run's own classifier of openers (the same network fitted to what the run's last 20 generations' rollouts
+did: opened a niche of the repertoire their generation began with, or not; run through ask/tell), alone and
+with its rank multiplied by the anchored novelty-5's; and a model relative to the parent (a network fitted on
+the other pools to the change of behavior from the parent's, from the parent's action and the child's step),
+scored at the parent's behavior plus the predicted change. And
 the task's ruggedness: quartiles of the distance between a child's behavior and its first
 parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
 sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
@@ -31,21 +36,24 @@ sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import report
 from extra_tasks import register_experiment_tasks
 
-from mqd_jax import Config, run_mqd
+from mqd_jax import Config, ask, tell
 from mqd_jax.core import repertoire as repertoire_lib
-from mqd_jax.core import selection
 from mqd_jax.core.archive import Archive
-from mqd_jax.core.run import get_task
+from mqd_jax.core.run import get_task, init, run_generations
 from mqd_jax.core.task import Task
+from mqd_jax.emitters.parts import Pooled
 from mqd_jax.surrogate import model
 
 POOL, CHOSEN = 800, 100
+HISTORY = 20  # the run's last generations whose rollouts' outcomes its own classifier of openers learns
 
 
 def auc(score: np.ndarray, label: np.ndarray) -> float:
@@ -79,6 +87,43 @@ def _rated(score: np.ndarray, opener: np.ndarray, error: float = float("nan")) -
     return auc(score, opener), float(opener[top].mean()), error
 
 
+def _predictions(emitter: Any, state: Any, pool: Any, rep: Any, task: Task) -> tuple[jax.Array, jax.Array]:
+    """The run's model's plain and anchored predictions [E, N, d + 1] of the pool's actions, as "mqd"'s
+    `Anchoring` makes them (at the parents the pool names)."""
+    x = emitter.model.inputs(pool.actions, task)
+    plain = emitter.model.overrule(state.surrogate, x, emitter.model.members(state.surrogate, pool.actions, task, x),
+                                   task)
+    view = emitter.view(state, rep, task, None, pool.actions.shape[0])
+    return plain, emitter.part("anchoring").anchored(Pooled(pool.actions, pool.parents, x, plain), view)
+
+
+def _relative_data(actions: jax.Array, behaviors: jax.Array, valid: jax.Array, rep: Any, parents: np.ndarray,
+                   task: Task) -> tuple[jax.Array, jax.Array, np.ndarray]:
+    """Inputs [N, 2n] (the parent's normalized action, the child's step from it), targets [N, d] (the child's
+    behavior's change from the parent's, in behavior-box units) and which rows are usable (valid, a parent)."""
+    parent_actions = model.normalize_actions(rep.actions[np.maximum(parents, 0)], task)
+    child = model.normalize_actions(actions, task)
+    scale = jnp.asarray(task.behavior_high) - jnp.asarray(task.behavior_low)
+    targets = jnp.clip((behaviors - rep.behaviors[np.maximum(parents, 0)]) / scale, -1, 1)
+    return jnp.concatenate([parent_actions, child - parent_actions], axis=1), targets, \
+        np.asarray(valid) & (parents >= 0)
+
+
+def _relative(data: list[tuple[jax.Array, jax.Array, np.ndarray]], task: Task, key: jax.Array) -> model.ModelState:
+    """A network of 64 units fitted for 3000 steps of 64 rows to the change of behavior from the parent's, on the
+    usable rows of `data` (`_relative_data`'s, at least one pool)."""
+    inputs = jnp.concatenate([x[ok] for x, _, ok in data])
+    targets = jnp.concatenate([y[ok] for _, y, ok in data])
+    fit = jax.jit(lambda s: model.fit(s, jax.random.fold_in(key, 3), inputs, targets, jnp.int32(inputs.shape[0]),
+                                      1e-3, 64, 3000))
+    return fit(model.init(key, 64, task, out_size=task.behavior_dim, input_size=2 * task.action_dim))[0]
+
+
+def _rank(score: np.ndarray) -> np.ndarray:
+    """Each score's rank in (0, 1], the highest 1."""
+    return (np.argsort(np.argsort(score, kind="stable"), kind="stable") + 1) / len(score)
+
+
 def _classifier(labelled: list[tuple[jax.Array, np.ndarray]], task: Task, key: jax.Array) -> model.ModelState:
     """A network of 64 units fitted for 3000 steps of 64 rows to +1 (opener) / -1 on [(normalized actions [N, n],
     openers [N])], at least one pool."""
@@ -89,11 +134,32 @@ def _classifier(labelled: list[tuple[jax.Array, np.ndarray]], task: Task, key: j
     return fit(model.init(key, 64, task, out_size=1))[0]
 
 
+def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tuple[jax.Array, np.ndarray]]]:
+    """The run of `cfg` from `seed` (as `run_mqd`'s generations, its last `last` through ask/tell), and what those
+    last generations' rollouts teach about openers: [(normalized actions [R, n], opened [R])], one per generation,
+    opened = valid and farther than t_dist from every skill of the repertoire its generation began with."""
+    task, params = get_task(cfg), cfg.params()
+    first = jax.jit(lambda k: run_generations(init(k, cfg), cfg, params, cfg.max_generations - last)[0])
+    state = first(jax.random.PRNGKey(seed))
+    history = []
+    for g in range(last):
+        candidates = ask(state, cfg)
+        key = jax.random.fold_in(jax.random.PRNGKey(10_000 + seed), g)
+        *outcome, auxiliary = task.evaluate_with_auxiliary(candidates.actions, key, candidates.rollout)
+        behaviors, _, valid = outcome
+        distance = np.sqrt(np.asarray(repertoire_lib.k_nearest(state.repertoire, behaviors, 1)[0][:, 0]))
+        rolled = np.asarray(candidates.rollout)
+        opened = np.asarray(valid) & (distance > float(params.t_dist))
+        history.append((model.normalize_actions(candidates.actions[rolled], task), opened[rolled]))
+        state, _ = tell(state, candidates, *outcome, cfg, auxiliary=auxiliary if task.auxiliary else None)
+    return state, history
+
+
 def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
     number of skills."""
     cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations)
-    state, _ = run_mqd(jax.random.PRNGKey(seed), cfg)
+    state, history = _run_with_history(cfg, seed, HISTORY)
     task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
     n, filled = int(rep.count), min(int(state.archive.total), state.archive.qualities.shape[0])
     skills = np.asarray(rep.behaviors[:n])
@@ -107,20 +173,19 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
     fresh |= {f"fresh {h} units, repertoire, with the task's features": _fresh(rep, h, task, key, True)
               for h in (32, 256)}
     out: dict[str, list] = {}
-    distances, openers, labelled = [], [], []
+    distances, openers, labelled, ranked, relative, parents_of = [], [], [], [], [], []
     for p in range(pools):
         k = jax.random.fold_in(key, p)
         pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params.part(params.emitter.inner), POOL)
-        # IsoLine's first parents, drawn as its propose draws them.
-        parents = np.asarray(selection.sample_parents(jax.random.split(k, 3)[1], rep.novelty, rep.valid, 2 * POOL))
-        parents = parents[:POOL]
+        parents = np.asarray(pool.parents)  # the skill each child was varied from, as the proposal names it
         behaviors, _, valid = task.evaluate(pool.actions, k)
         true_d = np.sqrt(np.asarray(repertoire_lib.k_nearest(rep, behaviors, 1)[0][:, 0]))
         opener = (true_d > float(params.t_dist)) & np.asarray(valid)
         openers.append(opener.mean())
+        parents_of.append(parents)
         distances.append(np.linalg.norm(np.asarray(behaviors) - np.asarray(rep.behaviors)[parents], axis=1)[
             np.asarray(valid)])
-        plain, anchored = emitter.predictions(state.emitter, pool.actions, rep, task, pool.parents)
+        plain, anchored = _predictions(emitter, state.emitter, pool, rep, task)
         scored = {f"run's model, {name}, {s}": v
                   for name, y in (("plain", plain), ("anchored", anchored))
                   for s, v in _scores(np.asarray(y.mean(0)[:, :-1]), skills).items()}
@@ -133,18 +198,34 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
         scored["parent's novelty"] = np.asarray(rep.novelty)[parents]
         scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
         labelled.append((model.normalize_actions(pool.actions, task), opener))
+        relative.append(_relative_data(pool.actions, behaviors, valid, rep, parents, task))
+        ranked.append(scored["run's model, anchored, novelty-5"])
         for name, score in scored.items():
             out.setdefault(name, []).append(_rated(score, opener, error.get(name, float("nan"))))
     for p, (inputs, opener) in enumerate(labelled if pools > 1 else []):  # one pool has no other to learn from
         score = np.asarray(model.apply_members(_classifier(labelled[:p] + labelled[p + 1:], task, key), inputs))
         out.setdefault("classifier of openers, other pools", []).append(_rated(score[0, :, 0], opener))
+    for p, (inputs, _, _) in enumerate(relative if pools > 1 else []):
+        delta = _relative(relative[:p] + relative[p + 1:], task, key)
+        scale = np.asarray(task.behavior_high) - np.asarray(task.behavior_low)
+        predicted = np.asarray(rep.behaviors)[parents_of[p]] + np.asarray(model.apply_members(delta, inputs))[0] * scale
+        for name, score in _scores(predicted, skills).items():
+            out.setdefault(f"relative to the parent (other pools), {name}", []).append(_rated(score, labelled[p][1]))
+    own = _classifier(history, task, key)  # what the run itself has seen open niches, its last generations
+    for p, (inputs, opener) in enumerate(labelled):
+        score = np.asarray(model.apply_members(own, inputs))[0, :, 0]
+        out.setdefault(f"classifier of the run's own openers, last {HISTORY} generations", []).append(
+            _rated(score, opener))
+        novelty = ranked[p]
+        out.setdefault("the run's own classifier x anchored novelty-5 (ranks multiplied)", []).append(
+            _rated(_rank(score) * _rank(novelty), opener))
     quantiles = np.quantile(np.concatenate(distances), [0.25, 0.5, 0.75])
     return out, {"base rate": float(np.mean(openers)), **{f"q{q}": v for q, v in zip((25, 50, 75), quantiles,
                                                                                          strict=True)}, "skills": n}
 
 
 def main() -> None:
-    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals.md", pools=4)
+    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md", pools=4)
     register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds} --pools {args.pools}`", "",

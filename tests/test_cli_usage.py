@@ -3,6 +3,7 @@
 import json
 import logging
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -180,3 +181,17 @@ def test_a_run_warning_is_one_line_without_the_librarys_source(monkeypatch):
     monkeypatch.setitem(cli._COMMANDS, "plot", lambda args: seen.append(warnings.formatwarning))
     cli.main(["plot", "nowhere"])
     assert seen == [cli._format_warning] and warnings.formatwarning is not cli._format_warning
+
+
+def test_the_readmes_set_up_paragraph_names_the_files_a_run_writes_and_its_refusal(tmp_path, capsys, refused,
+                                                                                  tiny_flags):
+    readme = (pathlib.Path(__file__).resolve().parent.parent / "README.md").read_text()
+    named = set(re.search(r"`results/run/\{([^}]*)\}`", readme).group(1).split(","))
+    out = str(tmp_path / "run")
+    cli.main(["run", *tiny_flags, "--out", out])
+    assert {p.name for p in pathlib.Path(out).iterdir()} == named  # all of them, and nothing else
+    assert "The same command again is refused: the run is finished, and `--overwrite` runs it again" in " ".join(
+        readme.split())
+    refused(["run", *tiny_flags, "--out", out], "--overwrite")
+    cli.main(["run", *tiny_flags, "--out", out, "--overwrite"])
+    assert {p.name for p in pathlib.Path(out).iterdir()} == named

@@ -2,6 +2,7 @@
 traced, values with `ModelEmitter(checks=True)` as it runs."""
 
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from mqd_jax import Config, run_mqd
+from mqd_jax.core.checks import PartFailed
 from mqd_jax.emitters import presets
 from mqd_jax.emitters.acquisition import Budgeted
 
@@ -94,9 +96,25 @@ def test_a_part_whose_outputs_have_the_wrong_shape_or_dtype_is_named_before_the_
     (None, Rule("outside"), r"Rule.select returned rows outside the pool's \[0, 32\)"),
     (NotFinite(), None, "NotFinite predicted values that are not finite"),
 ])
-def test_with_checks_a_part_whose_values_break_the_contract_stops_the_run_naming_it(surrogate, rule, message):
-    with pytest.raises(Exception, match=message):
+def test_with_checks_a_part_whose_values_break_the_contract_stops_the_run_naming_it(surrogate, rule, message,
+                                                                                  caplog):
+    with pytest.raises(PartFailed) as raised:  # itself, one line: not the runtime's error with a traceback
         _run(surrogate, rule, checks=True)
+    assert re.fullmatch(message + ".*", str(raised.value)) and "\n" not in str(raised.value)
+    assert "Traceback" not in caplog.text and "callback failed" not in caplog.text  # nor logged with one
+
+
+def test_the_checkpointed_runner_and_a_sweep_s_batch_raise_a_broken_part_as_one_line(tmp_path):
+    from mqd_jax.experiment.checkpoint import run_with_checkpoints
+    from mqd_jax.experiment.sweep import run_batch
+
+    emitter = dataclasses.replace(presets.mqd_paper(budgeted=True, warmup_samples=16), surrogate=Linear(),
+                                  acquisition=Rule("repeated"), checks=True)
+    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=4)
+    with pytest.raises(PartFailed, match=r"^Rule.select returned a row more than once: its rows must be distinct$"):
+        run_with_checkpoints(jax.random.PRNGKey(0), cfg, str(tmp_path / "ckpt"), every=2)
+    with pytest.raises(PartFailed, match=r"^Rule.select returned a row more than once: its rows must be distinct$"):
+        run_batch(cfg, jax.random.split(jax.random.PRNGKey(0), 2))
 
 
 def test_checks_change_nothing_in_a_run_that_keeps_the_contracts():

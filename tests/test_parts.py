@@ -1,6 +1,6 @@
 """A user's own surrogate and rule: the model emitter keeps their contracts (docs/extending.md) for any of them.
 
-The docs' kNN surrogate and random-share rule run through `run_mqd`, checkpoints, `run_batch` and `adapt` in
+The docs' kNN surrogate and random-share rule run through `run_mqd`, checkpoints and `adapt` in
 test_docs.py; here, parts that record what the emitter does with them."""
 
 import dataclasses

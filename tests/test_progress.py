@@ -61,3 +61,18 @@ def test_off_a_terminal_the_command_line_prints_lines_and_remembers_compile_time
     assert "the last compile of this config here took 12.3 s" in capsys.readouterr().out
     (tmp_path / progress_lib.COMPILE_TIMES).write_text("[not a dict")
     assert progress_lib.last_compile(str(tmp_path), cfg) is None
+
+
+def test_adaptation_steps_show_a_bar_on_a_terminal_and_print_each_line_either_way(monkeypatch, capsys):
+    pytest.importorskip("tqdm")
+    for terminal in (False, True):
+        monkeypatch.setattr("sys.stdout.isatty", lambda terminal=terminal: terminal)
+        steps = progress_lib.Steps("adapt", 3, "method")
+        assert (steps.bar is not None) == terminal
+        for method in ("nearest", "linear", "model"):
+            steps.step(f"obstacle2d {method}: mean error 0.01", f"obstacle2d {method}")
+        steps.close()
+        out, err = capsys.readouterr()
+        assert [line for line in out.splitlines() if line] == [f"obstacle2d {m}: mean error 0.01"
+                                                               for m in ("nearest", "linear", "model")]
+        assert ("3/3" in err and "method/s" in err and "<00:00" in err) == terminal

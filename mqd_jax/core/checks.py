@@ -7,7 +7,10 @@ static settings (`is_int`, `is_real`) and traced parameters (`check_traced`).
 
 from __future__ import annotations
 
+import contextlib
 import math
+import re
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -52,3 +55,24 @@ def shapes_of(tree: Any) -> str:
     leaves = jax.tree.leaves(tree)
     text = ", ".join(f"{jnp.result_type(x).name}{list(jnp.shape(x))}" for x in leaves)
     return f"({text})" if len(leaves) != 1 else text
+
+
+class PartFailed(ValueError):
+    """A part broke its contract while the program ran (`ModelEmitter(checks=True)`): raised in a host callback,
+    and by the runners again as itself, one line (`part_failures`), not as the runtime's error that carries it."""
+
+
+_CARRIED = re.compile(r"PartFailed: (.+)$", flags=re.M)
+
+
+@contextlib.contextmanager
+def part_failures() -> Iterator[None]:
+    """Around what waits for a run's results: a `PartFailed` raised in the program's host callback is raised as
+    itself (its one line), instead of the runtime error whose message carries its traceback."""
+    try:
+        yield
+    except jax.errors.JaxRuntimeError as error:
+        carried = _CARRIED.findall(str(error))
+        if not carried:
+            raise
+        raise PartFailed(carried[-1]) from None

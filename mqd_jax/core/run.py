@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mqd_jax.core import archive as archive_lib
-from mqd_jax.core import coverage, diagnostics, pytree, registry, repertoire, sizes
+from mqd_jax.core import checks, coverage, diagnostics, pytree, registry, repertoire, sizes
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.emitter import Evaluated, Proposal, init_emitter
 from mqd_jax.core.params import Params
@@ -485,9 +485,12 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
     if params is None:
         params = cfg.params()  # as arguments: the same compiled run for the config's values and others
     check_params(params, cfg)
-    state, metrics = _run_mqd(key, cfg, params)
-    if not any(isinstance(m, jax.core.Tracer) for m in metrics.values()):  # concrete: not inside a jit or vmap
-        diagnostics.warn(jax.device_get(metrics), cfg, get_task(cfg))
+    with checks.part_failures():  # raised as the program runs, or as its results are read
+        state, metrics = _run_mqd(key, cfg, params)
+        concrete = not any(isinstance(m, jax.core.Tracer) for m in metrics.values())  # not inside a jit or vmap
+        seen = jax.device_get(metrics) if concrete else None
+    if seen is not None:
+        diagnostics.warn(seen, cfg, get_task(cfg))
     return state, metrics
 
 

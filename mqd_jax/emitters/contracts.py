@@ -9,11 +9,14 @@ the tests run with it, and a user trying a new part should too.
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from mqd_jax.core.checks import PartFailed
 from mqd_jax.core.checks import shapes_of as _shapes
 
 
@@ -46,8 +49,19 @@ def values(rule: Any, surrogate: Any, rows: jax.Array, pool_size: int, predictio
              f"{type(surrogate).__name__} predicted values that are not finite (NaN or inf) after warm-up")
 
 
-def _fail_if(bad: jax.Array, message: str) -> None:
-    def fail(*_: Any) -> None:
-        raise ValueError(message)
+class _Quiet(logging.Filter):
+    """Keeps JAX from logging a part's failure with its traceback: the runners raise it as one line."""
 
-    jax.lax.cond(bad, lambda: jax.debug.callback(fail), lambda: None)
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.exc_info and isinstance(record.exc_info[1], PartFailed))
+
+
+logging.getLogger("jax._src.debugging").addFilter(_Quiet())
+
+
+def _fail_if(bad: jax.Array, message: str) -> None:
+    def fail(seen: Any) -> None:
+        if np.any(seen):  # under vmap the cond is a select: the callback runs every generation, told whether bad
+            raise PartFailed(message)
+
+    jax.lax.cond(bad, lambda: jax.debug.callback(fail, bad), lambda: None)

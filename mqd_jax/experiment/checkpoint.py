@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from mqd_jax.core import diagnostics, pytree
+from mqd_jax.core import checks, diagnostics, pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
@@ -288,8 +288,9 @@ def run_chunks(state: State, metrics: Metrics, cfg: Config, params: Params, ever
             progress.compiled()
     while (done := int(state.generation)) < cfg.max_generations:
         todo = min(every, cfg.max_generations - done)
-        state, chunk = step(state, params, todo)
-        chunk = {k: np.asarray(v)[:todo] for k, v in chunk.items()}
+        with checks.part_failures():
+            state, chunk = step(state, params, todo)
+            chunk = {k: np.asarray(v)[:todo] for k, v in chunk.items()}
         metrics = {k: np.concatenate([metrics[k], v]) if k in metrics else v for k, v in chunk.items()}
         if after is not None:
             after(state, metrics, chunk)

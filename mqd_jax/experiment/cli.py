@@ -490,6 +490,7 @@ def _adapt(args: argparse.Namespace) -> None:
         if not tasks:
             raise ValueError(f"{args.dir!r} holds no M-QD runs to adapt: run `mqd sweep --algorithms mqd --out "
                              f"{args.dir}` first")
+        steps = progress_lib.Steps("adapt", len(tasks) * len(adaptation.METHODS), "method")
         for task in tasks:
             cfg, keys, states = results.load_states(args.dir, task)
             goals = np.stack([adaptation.reachable_goals(get_task(cfg), args.goals, np.random.default_rng(i))
@@ -503,13 +504,14 @@ def _adapt(args: argparse.Namespace) -> None:
                 methods[method] = {"error": out.errors.mean(1), "steps": out.steps.mean(1),
                                    "reached": (out.errors < cfg.t_dist).mean(1), "goals": args.goals,
                                    "wall_s": time.perf_counter() - start}
-                print(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps {out.steps.mean():.2f}, "
-                      f"{methods[method]['wall_s']:.1f} s", flush=True)
+                steps.step(f"{task} {method}: mean error {out.errors.mean():.4f}, mean steps "
+                           f"{out.steps.mean():.2f}, {methods[method]['wall_s']:.1f} s", f"{task} {method}")
             found[task] = {"source": results.source(args.dir, task), "config": cfg.to_dict(),
                            "step_size": args.step_size, "steps": args.steps, "keys": keys,
                            "provenance": provenance(), "methods": methods}
             results.remove_derived(args.dir)
             folders.write_json(path, found)
+        steps.close()
         _plot(args.dir, show="adaptation.md")
 
 

@@ -26,11 +26,13 @@ from mqd_jax.experiment.results import NAMES, Runs
 
 
 def pyplot() -> Any:
-    """matplotlib.pyplot on the Agg backend, or None (with a message) when matplotlib is not installed."""
+    """matplotlib.pyplot on the Agg backend (a notebook's inline backend kept: its figures show in the cells), or
+    None (with a message) when matplotlib is not installed."""
     try:
         import matplotlib
 
-        matplotlib.use("Agg")
+        if "inline" not in matplotlib.get_backend():
+            matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
         print("matplotlib is not installed (pip install -e .[plot]): no figure written")
@@ -167,15 +169,23 @@ def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray
     return save(run_fig(task, metrics, behaviors, title, qualities), path, description)
 
 
-def of_state(state: Any, metrics: dict[str, Any], cfg: Any, path: str, title: str | None = None) -> str | None:
-    """`run_figure` of a run's final `state` and its `metrics` (what `run_mqd(key, cfg)` returns) to `path`."""
+def state_fig(state: Any, metrics: dict[str, Any], cfg: Any, title: str | None = None) -> Any:
+    """`run_fig` of a run's final `state` and its `metrics` (what `run_mqd(key, cfg)` returns): the figure, not
+    saved (a notebook shows it)."""
     from mqd_jax.core.run import get_task
 
     rep = jax.device_get(state.repertoire)
     n = int(rep.count)
     title = title or f"{cfg.task_name}, {cfg.algorithm_name}, {len(np.asarray(metrics['coverage']))} generations"
-    return run_figure(get_task(cfg), {k: np.asarray(v) for k, v in metrics.items()}, np.asarray(rep.behaviors[:n]),
-                      path, title, qualities=np.asarray(rep.qualities[:n]))
+    return run_fig(get_task(cfg), {k: np.asarray(v) for k, v in metrics.items()}, np.asarray(rep.behaviors[:n]),
+                   title, np.asarray(rep.qualities[:n]))
+
+
+def of_state(state: Any, metrics: dict[str, Any], cfg: Any, path: str, title: str | None = None) -> str | None:
+    """`state_fig` written to `path` (PNG) and returned, or None without matplotlib."""
+    if pyplot() is None:
+        return None
+    return save(state_fig(state, metrics, cfg, title), path)
 
 
 def figure2(task: Task, name: str, runs: dict[str, Runs], path: str, pair: tuple[int, int] | None = None) -> str | None:

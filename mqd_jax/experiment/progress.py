@@ -1,6 +1,6 @@
 """Progress of a run, a sweep or an adaptation: a hook the Python runners call (`Progress`, which does nothing),
 the command line's bar (`Bar`: tqdm, with the rate and the time left) where its output is a terminal, and its
-lines (`Lines`) where it is not.
+lines (`Lines`) where it is not; `Steps`, the same for steps that are not generations (`mqd adapt`).
 
 The runners (`checkpoint.run_with_checkpoints`, `sweep.run_batch`, `run` below) take `progress=`: they call
 `resume(done, metrics)` where they start, `compiling()` and `compiled()` around the compilation, `chunk(done,
@@ -156,6 +156,34 @@ def for_output(label: str, total: int, cfg: Config | None = None, folder: str | 
         except ImportError:
             pass
     return Lines(label, total, cfg, folder, cache_note)
+
+
+class Steps:
+    """Progress over `total` steps of work that is not generations (`mqd adapt`: one step per task and method):
+    a tqdm bar with the rate and the time left where standard output is a terminal and tqdm is installed; each
+    step's line is printed either way (above the bar, which stays at the bottom)."""
+
+    def __init__(self, label: str, total: int, unit: str) -> None:
+        self.bar = None
+        if sys.stdout.isatty():
+            try:
+                from tqdm.auto import tqdm
+            except ImportError:
+                return
+            self.bar = tqdm(total=total, desc=label, unit=unit, dynamic_ncols=True, leave=True)
+
+    def step(self, line: str, now: str = "") -> None:
+        """One step done: its `line` printed; `now`, the step just done, beside the bar."""
+        if self.bar is None:
+            print(line, flush=True)
+            return
+        self.bar.write(line)
+        self.bar.set_postfix_str(now, refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 # The compile times the command line remembers, per config, in the compilation cache's folder.

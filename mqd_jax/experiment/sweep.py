@@ -31,7 +31,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from mqd_jax.core import diagnostics
+from mqd_jax.core import checks, diagnostics
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
@@ -178,8 +178,9 @@ def run_batch(
         progress.compiled()
     while (done := sum(p["coverage"].shape[1] for p in parts)) < cfg.max_generations:
         todo = min(chunk, cfg.max_generations - done)
-        states, metrics = step(states, params, jnp.int32(todo))
-        parts.append({k: _gather(v)[:runs, :todo] for k, v in metrics.items()})
+        with checks.part_failures():
+            states, metrics = step(states, params, jnp.int32(todo))
+            parts.append({k: _gather(v)[:runs, :todo] for k, v in metrics.items()})
         if on_state is not None:
             on_state(jax.tree.map(lambda x: _gather(x)[:runs], states),
                      {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[-1]})

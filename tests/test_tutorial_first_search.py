@@ -1,0 +1,7 @@
+"""Tutorial 01, a first search: runs top to bottom at tiny sizes (tutorial_runs.py)."""
+
+from tutorial_runs import runs_at_tiny_sizes_as_committed
+
+
+def test_first_search_runs_at_tiny_sizes_and_shows_what_its_full_run_shows():
+    runs_at_tiny_sizes_as_committed("01_first_search")
