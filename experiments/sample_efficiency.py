@@ -56,6 +56,7 @@ from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
 from mqd_jax.experiment import results, stats
+from mqd_jax.experiment.progress import Progress
 from mqd_jax.experiment.sweep import run_batch, seed_keys
 from mqd_jax.surrogate.surrogate import SurrogateState
 
@@ -122,13 +123,19 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
 SKILLS = "final_skills"
 
 
+class Compiled(Progress):
+    """Remembers when the batch's program was compiled (`at`, perf_counter seconds)."""
+
+    def compiled(self) -> None:
+        self.at = time.perf_counter()
+
+
 def _run(task: str, spec: str, seeds: int, generations: int | None) -> dict[str, Any]:
     cfg = configured(spec, task, generations)
-    compiled = {}
+    compiled = Compiled()
     start = time.perf_counter()
-    states, metrics = run_batch(cfg, seed_keys(seeds),
-                                on_compiled=lambda: compiled.setdefault("t", time.perf_counter()))
-    ms = (time.perf_counter() - compiled["t"]) / cfg.max_generations * 1e3
+    states, metrics = run_batch(cfg, seed_keys(seeds), progress=compiled)
+    ms = (time.perf_counter() - compiled.at) / cfg.max_generations * 1e3
     print(f"{task} {spec}: {time.perf_counter() - start:.0f} s", flush=True)
     skills = [jax.tree.map(lambda x, i=i: x[i], states.repertoire) for i in range(seeds)]
     return _curves(metrics, warmup(cfg)) | {"ms_per_generation": ms, SKILLS: skills, "t_dist": cfg.t_dist}

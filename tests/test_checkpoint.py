@@ -12,6 +12,7 @@ from flax import serialization
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.run import get_task
 from mqd_jax.experiment import checkpoint, cli, folders, results
+from mqd_jax.experiment import progress as progress_lib
 
 CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),
              population_size=16, max_generations=12, capacity=256, archive_capacity=64)
@@ -32,15 +33,16 @@ def uninterrupted():
     return run_mqd(KEY, CFG)
 
 
-def crash_after(chunks):
-    seen = []
+class CrashAfter(progress_lib.Progress):
+    """Crashes the run after its `chunks`-th chunk (its checkpoint saved)."""
 
-    def on_chunk(state, metrics):
-        seen.append(int(state.generation))
-        if len(seen) == chunks:
+    def __init__(self, chunks):
+        self.chunks, self.seen = chunks, []
+
+    def chunk(self, done, metrics):
+        self.seen.append(done)
+        if len(self.seen) == self.chunks:
             raise Crash
-
-    return on_chunk
 
 
 # Resumed and uninterrupted runs are different programs: with the elemental emitters they may round a float32
@@ -49,7 +51,7 @@ def crash_after(chunks):
 def test_a_resumed_run_equals_the_uninterrupted_one(tmp_path, uninterrupted):
     path = str(tmp_path / "run.ckpt")
     with pytest.raises(Crash):
-        checkpoint.run_with_checkpoints(KEY, CFG, path, every=5, on_chunk=crash_after(1))
+        checkpoint.run_with_checkpoints(KEY, CFG, path, every=5, progress=CrashAfter(1))
     state, metrics = checkpoint.load(path, CFG, KEY)
     assert int(state.generation) == 5 and len(metrics["coverage"]) == 5
     state, metrics = checkpoint.run_with_checkpoints(KEY, CFG, path, every=5)

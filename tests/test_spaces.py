@@ -14,6 +14,7 @@ from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import coverage
 from mqd_jax.core import run as run_lib
 from mqd_jax.experiment import cli
+from mqd_jax.experiment import progress as progress_lib
 
 
 def _ball_volume(d: int, r: float) -> float:
@@ -161,11 +162,12 @@ def test_a_monte_carlo_run_resumes_from_its_checkpoint_bit_for_bit(tmp_path):
     whole = run_mqd(jax.random.PRNGKey(0), cfg)
     path = str(tmp_path / "run.msgpack")
 
-    def interrupt(state, metrics):
-        raise KeyboardInterrupt
+    class Interrupt(progress_lib.Progress):
+        def chunk(self, done, metrics):
+            raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):  # after the first chunk of 2 generations, saved
-        checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, path, every=2, on_chunk=interrupt)
+        checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, path, every=2, progress=Interrupt())
     resumed = checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, path, every=2)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
         np.testing.assert_array_equal(a, b)

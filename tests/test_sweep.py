@@ -14,6 +14,7 @@ import pytest
 from mqd_jax import Config
 from mqd_jax.core import registry
 from mqd_jax.experiment import cli, results, sweep
+from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.stats import mann_whitney
 from mqd_jax.experiment.sweep import run_batch, seed_keys
 
@@ -25,9 +26,16 @@ def test_chunks_do_not_change_a_batch_and_runs_keep_their_key():
     cfg = Config(**TINY)
     keys = seed_keys(3)
     _, whole = run_batch(cfg, keys)
-    seen = []
-    _, chunked = run_batch(cfg, keys, chunk=4, on_chunk=lambda done, m: seen.append((done, m["coverage"].shape)))
-    assert seen == [(4, (3, 4)), (6, (3, 2))]
+    class Seen(progress_lib.Progress):
+        def __init__(self):
+            self.chunks = []
+
+        def chunk(self, done, m):
+            self.chunks.append((done, m["coverage"].shape))
+
+    seen = Seen()
+    _, chunked = run_batch(cfg, keys, chunk=4, progress=seen)
+    assert seen.chunks == [(4, (3, 4)), (6, (3, 2))]
     for name in whole:
         np.testing.assert_array_equal(whole[name], chunked[name])
     # A run's results depend on its key only, not on its neighbours in the batch.

@@ -235,9 +235,7 @@ def run_with_checkpoints(
     every: int,
     params: Params | None = None,
     resume: bool = True,
-    on_chunk: Callable[[State, Metrics], None] | None = None,
     on_start: Callable[[State, Metrics], None] | None = None,
-    on_compiled: Callable[[], None] | None = None,
     progress: Any = None,
 ) -> tuple[State, Metrics]:
     """`run_mqd` in chunks of `every` generations, saving a checkpoint at `path` after each.
@@ -246,9 +244,9 @@ def run_with_checkpoints(
     from the same config and key); the result is identical to an
     uninterrupted `run_mqd(key, cfg, params)`. `on_start(state, metrics)` is
     called before compiling with the state and metrics it starts from (empty
-    unless resumed), `on_compiled()` once compiled, `on_chunk(state, metrics)`
-    after each chunk with the chunk's metrics. `progress` (`mqd_jax.experiment.progress`: `Bar` for a bar; None:
-    nothing) is told where the run starts, the compilation and each chunk. Warns like `run_mqd` at the end.
+    unless resumed). `progress` (`mqd_jax.experiment.progress`: `Bar` for a bar, any `Progress` for a hook; None:
+    nothing) is told where the run starts, the compilation and each chunk, after its checkpoint is saved. Warns
+    like `run_mqd` at the end.
     """
     if not (is_int(every) and every >= 1):
         raise ValueError(f"every={every!r} is invalid: expected an int >= 1")
@@ -266,14 +264,11 @@ def run_with_checkpoints(
 
     def saved(state: State, metrics: Metrics, chunk: Metrics) -> None:
         save(path, state, metrics, cfg, key)
-        if on_chunk is not None:
-            on_chunk(state, chunk)
 
-    return run_chunks(state, metrics, cfg, params, every, progress, on_compiled, saved)
+    return run_chunks(state, metrics, cfg, params, every, progress, saved)
 
 
 def run_chunks(state: State, metrics: Metrics, cfg: Config, params: Params, every: int, progress: Any = None,
-               on_compiled: Callable[[], None] | None = None,
                after: Callable[[State, Metrics, Metrics], None] | None = None) -> tuple[State, Metrics]:
     """`state` (with its metrics so far) run on to `cfg.max_generations` in chunks of `every` generations, one
     compiled chunk (`compile_chunk`): after each, `after(state, the metrics so far, the chunk's)`, then
@@ -282,8 +277,6 @@ def run_chunks(state: State, metrics: Metrics, cfg: Config, params: Params, ever
         if progress is not None:
             progress.compiling()
         step = compile_chunk(state, cfg, params, every)
-        if on_compiled is not None:
-            on_compiled()
         if progress is not None:
             progress.compiled()
     while (done := int(state.generation)) < cfg.max_generations:

@@ -106,8 +106,6 @@ def run_batch(
     keys: jax.Array,
     params: Params | None = None,
     chunk: int | None = None,
-    on_chunk: Callable[[int, Metrics], None] | None = None,
-    on_compiled: Callable[[], None] | None = None,
     start: tuple[State, Metrics] | None = None,
     on_state: Callable[[State, Metrics], None] | None = None,
     progress: Any = None,
@@ -119,20 +117,18 @@ def run_batch(
       keys: [R, 2] one key per run (`seed_keys`).
       params: traced parameters: unbatched (every run uses them; default
         `cfg.params()`) or with a leading axis [R] (`grid`).
-      chunk: generations per compiled call (default: the whole run).
-      on_chunk: called after each chunk with (generations done, that chunk's
-        metrics, each [R, chunk]).
-      on_compiled: called once the chunk's program is compiled (it is compiled
-        ahead of the first chunk, once for every chunk).
+      chunk: generations per compiled call (default: the whole run; its program is compiled ahead of the first
+        chunk, once for every chunk).
       start: (states [R], metrics [R, done]) of these runs after `done`
         generations, as `on_state` gave them: the batch continues from there
         and, with the same chunk, ends bit for bit as it would have without the
         stop (`mqd sweep` resumes an interrupted batch so).
-      on_state: called after each chunk, before `on_chunk`, with the states
+      on_state: called after each chunk, before `progress.chunk`, with the states
         (numpy, leading [R]) and every metric so far ([R, done]): what a
         checkpoint of the batch holds.
-      progress: told where the batch starts, of the compilation and of each chunk
-        (`mqd_jax.experiment.progress`: `Bar` for a bar; None: nothing).
+      progress: told where the batch starts, of the compilation and of each chunk (generations done, that
+        chunk's metrics, each [R, chunk]) (`mqd_jax.experiment.progress`: `Bar` for a bar, any `Progress` for a
+        hook; None: nothing).
 
     Returns:
       The final states (every array with a leading [R] axis, on the devices)
@@ -172,8 +168,6 @@ def run_batch(
         progress.resume(sum(p["coverage"].shape[1] for p in parts), parts[0] if parts else {})
         progress.compiling()
     step = _chunk.lower(states, params, jnp.int32(chunk), cfg, chunk).compile()
-    if on_compiled is not None:
-        on_compiled()
     if progress is not None:
         progress.compiled()
     while (done := sum(p["coverage"].shape[1] for p in parts)) < cfg.max_generations:
@@ -184,8 +178,6 @@ def run_batch(
         if on_state is not None:
             on_state(jax.tree.map(lambda x: _gather(x)[:runs], states),
                      {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[-1]})
-        if on_chunk is not None:
-            on_chunk(done + todo, parts[-1])
         if progress is not None:
             progress.chunk(done + todo, parts[-1])
     if progress is not None:
