@@ -1,7 +1,7 @@
 """Which signals tell a niche-opener from the rest of a pool, and how rugged a task is under QD's mutation.
 
     python experiments/opener_signals.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 2]
-        [--pools 4] [--out docs/data/opener_signals_v20.md]
+        [--pools 4] [--ensemble 1] [--out docs/data/opener_signals_v20.md]
 
 For each task and seed: a run of the "mqd" preset for `--generations` generations, then `--pools`
 pools of 8 x 100 IsoLine children of its final repertoire (what "mqd" chooses its rollouts
@@ -28,7 +28,8 @@ the run's own classifier of openers (the same network fitted to what the run's l
 did: opened a niche of the repertoire their generation began with, or not; run through ask/tell), alone and
 with its rank multiplied by the anchored novelty-5's; and a model relative to the parent (a network fitted on
 the other pools to the change of behavior from the parent's, from the parent's action and the child's step),
-scored at the parent's behavior plus the predicted change. And
+scored at the parent's behavior plus the predicted change; with `--ensemble E` ("mqd" with E members), the
+members' spread alone and added to the anchored distance (optimism, as `Diverse` ranks with an ensemble). And
 the task's ruggedness: quartiles of the distance between a child's behavior and its first
 parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
 sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
@@ -155,10 +156,12 @@ def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tupl
     return state, history
 
 
-def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[dict[str, list], dict[str, float]]:
+def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1
+            ) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
-    number of skills."""
-    cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations)
+    number of skills. `ensemble` > 1: "mqd" with that many members, and the signals of their spread."""
+    options = {"ensemble_size": ensemble} if ensemble > 1 else {}
+    cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations, algorithm_options=options)
     state, history = _run_with_history(cfg, seed, HISTORY)
     task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
     n, filled = int(rep.count), min(int(state.archive.total), state.archive.qualities.shape[0])
@@ -192,6 +195,10 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
         predicted = {name: np.asarray(model.predict(m, pool.actions, task, "features" in name)[0])
                      for name, m in fresh.items()}
         scored |= {f"{name}, nearest": _scores(y, skills)["nearest"] for name, y in predicted.items()}
+        if ensemble > 1:  # lead 3: the members' disagreement on the behavior, alone and as optimism
+            spread = np.sqrt(np.asarray(anchored)[:, :, :-1].var(axis=0).sum(-1))
+            scored["ensemble's spread (anchored)"] = spread
+            scored["anchored nearest + spread (optimistic)"] = scored["run's model, anchored, nearest"] + spread
         ok = np.asarray(valid)
         error = {f"{name}, nearest": float(np.mean((y[ok] - np.asarray(behaviors)[ok]) ** 2))
                  for name, y in predicted.items()}
@@ -225,16 +232,19 @@ def signals(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
 
 
 def main() -> None:
-    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md", pools=4)
+    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md", pools=4,
+                                  ensemble=1)
     register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
-             f"{args.generations} --seeds {args.seeds} --pools {args.pools}`", "",
+             f"{args.generations} --seeds {args.seeds} --pools {args.pools}"
+             + (f" --ensemble {args.ensemble}`" if args.ensemble > 1 else "`"), "",
              f"Machine: {report.machine()}.", "",
              f"After {args.generations} generations of \"mqd\": {args.pools} pools of {POOL} IsoLine children per "
              f"seed, all rolled out; an opener would open a niche. AUC: P(opener scores higher), 0.5 = chance; "
              f"precision@{CHOSEN}: openers among the {CHOSEN} best-scored. Mean over seeds and pools.", ""]
     for task_name in args.tasks:
-        per_seed = [signals(task_name, args.generations, seed, args.pools) for seed in range(args.seeds)]
+        per_seed = [signals(task_name, args.generations, seed, args.pools, args.ensemble)
+                    for seed in range(args.seeds)]
         stats = {k: np.mean([s[1][k] for s in per_seed]) for k in per_seed[0][1]}
         lines += [f"### {task_name}", "",
                   f"Skills after {args.generations} generations: {stats['skills']:.0f}; openers in a pool (base "
