@@ -113,11 +113,20 @@ def _relative_data(actions: jax.Array, behaviors: jax.Array, valid: jax.Array, r
 def _relative(data: list[tuple[jax.Array, jax.Array, np.ndarray]], task: Task, key: jax.Array) -> model.ModelState:
     """A network of 64 units fitted for 3000 steps of 64 rows to the change of behavior from the parent's, on the
     usable rows of `data` (`_relative_data`'s, at least one pool)."""
-    inputs = jnp.concatenate([x[ok] for x, _, ok in data])
-    targets = jnp.concatenate([y[ok] for _, y, ok in data])
-    fit = jax.jit(lambda s: model.fit(s, jax.random.fold_in(key, 3), inputs, targets, jnp.int32(inputs.shape[0]),
-                                      1e-3, 64, 3000))
-    return fit(model.init(key, 64, task, out_size=task.behavior_dim, input_size=2 * task.action_dim))[0]
+    return _fitted(jnp.concatenate([x[ok] for x, _, ok in data]), jnp.concatenate([y[ok] for _, y, ok in data]),
+                   model.init(key, 64, task, out_size=task.behavior_dim, input_size=2 * task.action_dim),
+                   jax.random.fold_in(key, 3))
+
+
+def _fitted(inputs: jax.Array, targets: jax.Array, network: model.ModelState, key: jax.Array) -> model.ModelState:
+    """`network` fitted for 3000 steps of 64 rows to targets [R, out] from inputs [R, in]."""
+    fit = jax.jit(lambda s: model.fit(s, key, inputs, targets, jnp.int32(inputs.shape[0]), 1e-3, 64, 3000))
+    return fit(network)[0]
+
+
+def _nearest_skill(rep: Any, behaviors: jax.Array) -> np.ndarray:
+    """Each behavior's [N] distance to the nearest skill of `rep` (inf where it holds none)."""
+    return np.sqrt(np.asarray(repertoire_lib.k_nearest(rep, behaviors, 1)[0][:, 0]))
 
 
 def _rank(score: np.ndarray) -> np.ndarray:
@@ -128,11 +137,9 @@ def _rank(score: np.ndarray) -> np.ndarray:
 def _classifier(labelled: list[tuple[jax.Array, np.ndarray]], task: Task, key: jax.Array) -> model.ModelState:
     """A network of 64 units fitted for 3000 steps of 64 rows to +1 (opener) / -1 on [(normalized actions [N, n],
     openers [N])], at least one pool."""
-    inputs = jnp.concatenate([x for x, _ in labelled])
     targets = jnp.concatenate([jnp.where(o, 1.0, -1.0) for _, o in labelled])[:, None]
-    fit = jax.jit(lambda s: model.fit(s, jax.random.fold_in(key, 2), inputs, targets, jnp.int32(inputs.shape[0]),
-                                      1e-3, 64, 3000))
-    return fit(model.init(key, 64, task, out_size=1))[0]
+    return _fitted(jnp.concatenate([x for x, _ in labelled]), targets, model.init(key, 64, task, out_size=1),
+                   jax.random.fold_in(key, 2))
 
 
 def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tuple[jax.Array, np.ndarray]]]:
@@ -148,7 +155,7 @@ def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tupl
         key = jax.random.fold_in(jax.random.PRNGKey(10_000 + seed), g)
         *outcome, auxiliary = task.evaluate_with_auxiliary(candidates.actions, key, candidates.rollout)
         behaviors, _, valid = outcome
-        distance = np.sqrt(np.asarray(repertoire_lib.k_nearest(state.repertoire, behaviors, 1)[0][:, 0]))
+        distance = _nearest_skill(state.repertoire, behaviors)
         rolled = np.asarray(candidates.rollout)
         opened = np.asarray(valid) & (distance > float(params.t_dist))
         history.append((model.normalize_actions(candidates.actions[rolled], task), opened[rolled]))
@@ -182,7 +189,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
         pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params.part(params.emitter.inner), POOL)
         parents = np.asarray(pool.parents)  # the skill each child was varied from, as the proposal names it
         behaviors, _, valid = task.evaluate(pool.actions, k)
-        true_d = np.sqrt(np.asarray(repertoire_lib.k_nearest(rep, behaviors, 1)[0][:, 0]))
+        true_d = _nearest_skill(rep, behaviors)
         opener = (true_d > float(params.t_dist)) & np.asarray(valid)
         openers.append(opener.mean())
         parents_of.append(parents)
