@@ -104,7 +104,9 @@ def test_with_checks_a_part_whose_values_break_the_contract_stops_the_run_naming
     assert "Traceback" not in caplog.text and "callback failed" not in caplog.text  # nor logged with one
 
 
-def test_the_checkpointed_runner_and_a_sweep_s_batch_raise_a_broken_part_as_one_line(tmp_path):
+def test_the_checkpointed_runner_a_sweep_s_batch_and_ask_raise_a_broken_part_as_one_line(tmp_path):
+    from mqd_jax import ask
+    from mqd_jax.core.run import init
     from mqd_jax.experiment.checkpoint import run_with_checkpoints
     from mqd_jax.experiment.sweep import run_batch
 
@@ -115,6 +117,9 @@ def test_the_checkpointed_runner_and_a_sweep_s_batch_raise_a_broken_part_as_one_
         run_with_checkpoints(jax.random.PRNGKey(0), cfg, str(tmp_path / "ckpt"), every=2)
     with pytest.raises(PartFailed, match=r"^Rule.select returned a row more than once: its rows must be distinct$"):
         run_batch(cfg, jax.random.split(jax.random.PRNGKey(0), 2))
+    # ask raises it itself (the rule runs in warm-up too), not the runtime's error where the candidates are read
+    with pytest.raises(PartFailed, match=r"^Rule.select returned a row more than once: its rows must be distinct$"):
+        ask(init(jax.random.PRNGKey(0), cfg), cfg)
 
 
 def test_checks_change_nothing_in_a_run_that_keeps_the_contracts():

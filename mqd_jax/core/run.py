@@ -239,9 +239,23 @@ def ask(state: State, cfg: Config, params: Params | None = None) -> Candidates:
 
     Uses `state.key` and does not advance it: `tell` does. Raises ValueError
     for a state of another config, invalid concrete params, or an emitter
-    whose proposal is not shaped actions [P, n], rollout [P] bool.
+    whose proposal is not shaped actions [P, n], rollout [P] bool; called with
+    concrete arguments it waits for the candidates, and a part that breaks its
+    contract under `checks=True` raises `PartFailed` here, one line.
     """
-    return _ask(state, cfg, _checked(state, cfg, params))
+    params = _checked(state, cfg, params)
+    return _settled(lambda: _ask(state, cfg, params))
+
+
+def _settled(compute: Callable[[], Any]) -> Any:
+    """compute()'s results, waited for where they are concrete (not inside a jit or vmap, as `generation` calls
+    `ask` and `tell`), so that a `PartFailed` raised as the program runs is raised here as itself
+    (`checks.part_failures`), not later where its results are first read."""
+    with checks.part_failures():
+        out = compute()
+        if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(out)):
+            jax.block_until_ready(out)
+    return out
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -401,7 +415,8 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
         for a task that names some; None for one that does not.
 
     Returns:
-      The next state (key advanced) and the generation's metrics (see `run_mqd`).
+      The next state (key advanced) and the generation's metrics (see `run_mqd`);
+      called with concrete arguments it waits for them, as `ask` does.
     """
     params = _checked(state, cfg, params)
     asked, now = candidates.generation, state.generation
@@ -411,7 +426,7 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
     behaviors, qualities, valid = (jnp.asarray(x) for x in (behaviors, qualities, valid))
     auxiliary = _check_results(behaviors, qualities, valid, auxiliary, cfg.population_size, get_task(cfg),
                                cfg.task_name)
-    return _tell(state, candidates, behaviors, qualities, valid, auxiliary, cfg, params)
+    return _settled(lambda: _tell(state, candidates, behaviors, qualities, valid, auxiliary, cfg, params))
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
