@@ -25,7 +25,9 @@ For each task and composition, from the mean over seeds of coverage [G] and roll
   * ms per generation (the batch's wall time after compiling, per generation) and its ratio to QD's
     in the same invocation (not with --sweep: its runs were timed in other processes).
 The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
-of the model's predictions: the ceiling of what a better model could buy.
+of the model's predictions: the ceiling of what a better model could buy. "local" is `"mqd"` with the
+surrogate `LocalLinear` (`mqd_jax.surrogate.local`) in place of the network ("local:neighbours=32,buffer=2048":
+its options, beside the preset's).
 
 `--tasks arm`, `rugged_arm` and `rastrigin` are tasks none of this was tuned on (`extra_tasks.py`).
 
@@ -55,9 +57,11 @@ from mqd_jax.core import algorithms, registry
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
+from mqd_jax.emitters import presets
 from mqd_jax.experiment import results, stats
 from mqd_jax.experiment.progress import Progress
 from mqd_jax.experiment.sweep import run_batch, seed_keys
+from mqd_jax.surrogate.local import LocalLinear
 from mqd_jax.surrogate.surrogate import SurrogateState
 
 
@@ -78,7 +82,7 @@ class Oracle(Surrogate):
 # The compositions the report's tables still show: the presets and the oracle. The compositions that stood for
 # earlier versions of "mqd" and the ablations measured on the way (docs/results.md's history) are in the git
 # history: commit 7e79d7f holds this script with all of them.
-COMPOSITIONS = ("qd", "mqd-paper", "mqd", "random", "oracle")
+COMPOSITIONS = ("qd", "mqd-paper", "mqd", "random", "oracle", "local")
 FRACTIONS = (0.25, 0.5, 1.0)
 
 
@@ -95,7 +99,7 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:
         raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
-    preset = "mqd" if name == "oracle" else name
+    preset = "mqd" if name in ("oracle", "local") else name
     options = {}
     for change in filter(None, changes.split(",")):
         option, equals, text = change.partition("=")
@@ -108,8 +112,12 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     fields = {f.name for f in dataclasses.fields(Config)} - {"algorithm", "algorithm_options", "task"}
     changed = {field: options.pop(field) for field in fields & set(options)}
     length = {} if generations is None else {"max_generations": generations}
+    local = {f: options.pop(f) for f in ("neighbours", "ridge", "buffer") if f in options and name == "local"}
     try:
         cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
+        if name == "local":  # "mqd" with the local surrogate, its options beside the preset's
+            cfg = dataclasses.replace(cfg, algorithm=presets.mqd(**options, surrogate=LocalLinear(**local)),
+                                      algorithm_options={})
         if name == "oracle":  # the preset's acquisition fed the true outcomes
             oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1),
                                          parts=tuple(p for p in cfg.emitter.parts if p.name != "fallback"))

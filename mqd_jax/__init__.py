@@ -19,6 +19,7 @@ from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.emitters.side_by_side import SideBySide
 from mqd_jax.emitters.steering import Steering
 from mqd_jax.emitters.step_aside import StepAside
+from mqd_jax.surrogate.local import LocalLinear
 from mqd_jax.surrogate.surrogate import Surrogate
 from mqd_jax.surrogate.validity import Validity
 from mqd_jax.version import __version__
@@ -36,6 +37,7 @@ __all__ = [
            "Fallback",
            "Imagination",
            "IsoLine",
+           "LocalLinear",
            "ModelEmitter",
            "Params",
            "Part",

@@ -25,6 +25,10 @@ Optionally:
 * `default_params()` and `check_params(params)`: traced parameters (read as `params` in `fit`); without
   them, `params` is ().
 * `check_task(task)`: raise ValueError for a task the surrogate cannot serve, before anything is traced.
+* `observe(key, state, actions, rollout, evaluated, task, params, features)`: the state after a generation's
+  rollouts (actions [P, n], `rollout` [P], `Evaluated`), warm-up included: a surrogate that learns from every
+  rollout, not only the repertoire's skills (`mqd_jax.surrogate.local.LocalLinear`). Without it, the state is
+  kept.
 
 What is not the surrogate's: warm-up (when `fit` is first called), anchoring (predicting from a known skill's
 outcome: the part `Anchoring`), the held-out prediction error and what the rules make of predictions.
@@ -75,8 +79,8 @@ class Hooks:
     """Any surrogate as the model emitter reads it: the protocol with every optional hook filled in.
 
     The built-in `Surrogate` has all of these itself; `hooks` wraps any other surrogate in this class, whose
-    hooks are neutral: network inputs are the actions, no features are kept, no rollout is observed, no gate
-    overrules a prediction and no validity classifier judges a candidate.
+    hooks are neutral: network inputs are the actions, no features are kept, a rollout is observed only by a
+    surrogate with its own `observe`, no gate overrules a prediction and no validity classifier judges a candidate.
     """
 
     model: Any
@@ -102,11 +106,7 @@ class Hooks:
         """The model's, its state checked against the one it was given (structure, shapes, dtypes) and its loss a
         real scalar: ValueError naming the model otherwise."""
         new, loss = self.model.fit(key, state, repertoire, task, params)
-        if jax.tree.structure(new) != jax.tree.structure(state) or any(
-                jnp.shape(a) != jnp.shape(b) or jnp.result_type(a) != jnp.result_type(b)
-                for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(state), strict=True)):
-            raise ValueError(f"{_name(self.model)}.fit returned a state {_shapes(new)}; expected one of the structure, "
-                             f"shapes and dtypes it was given, {_shapes(state)} (init's)")
+        _check_state(self.model, "fit", new, state)
         if jnp.shape(loss) != () or not jnp.issubdtype(jnp.result_type(loss), jnp.floating):
             raise ValueError(f"{_name(self.model)}.fit returned a loss {_shapes(loss)}; expected a float scalar")
         return new, jnp.asarray(loss, jnp.float32)
@@ -155,7 +155,13 @@ class Hooks:
 
     def observe(self, key: jax.Array, state: Any, actions: jax.Array, rollout: jax.Array, evaluated: Evaluated,
                 task: Task, params: Any, features: jax.Array | None = None) -> Any:
-        return state
+        """The model's `observe` where it has one (its state checked as `fit`'s), else the state as it is."""
+        own = getattr(self.model, "observe", None)
+        if own is None:
+            return state
+        new = own(key, state, actions, rollout, evaluated, task, params, features)
+        _check_state(self.model, "observe", new, state)
+        return new
 
     def metrics(self) -> dict[str, Any]:
         return {}
@@ -166,6 +172,16 @@ class Hooks:
 
 def _name(part: Any) -> str:
     return type(part).__name__
+
+
+def _check_state(model: Any, function: str, new: Any, state: Any) -> None:
+    """ValueError naming `model.function` where the state it returned is not of the structure, shapes and dtypes
+    of the one it was given."""
+    if jax.tree.structure(new) != jax.tree.structure(state) or any(
+            jnp.shape(a) != jnp.shape(b) or jnp.result_type(a) != jnp.result_type(b)
+            for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(state), strict=True)):
+        raise ValueError(f"{_name(model)}.{function} returned a state {_shapes(new)}; expected one of the structure, "
+                         f"shapes and dtypes it was given, {_shapes(state)} (init's)")
 
 
 def hooks(surrogate: Any) -> Any:
