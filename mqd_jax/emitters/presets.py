@@ -49,8 +49,7 @@ TABLE_II = {
 
 # The options of the built-in model and of `Diverse` that a preset does not read where one's own part replaces them
 # (Table II's settings among them are left alone: a config passes those for every run).
-_SURROGATE_OPTIONS = ("ensemble_size", "features", "gate", "validity", "training_data", "rollout_buffer",
-                      "averaged")
+_SURROGATE_OPTIONS = ("ensemble_size", "features", "gate", "validity", "training_data", "rollout_buffer")
 _RULE_OPTIONS = ("pool_factor", "optimism", "parent_weight", "quality_share")
 
 
@@ -82,7 +81,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
         line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
         step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096,
-        averaged: int = 0, surrogate: Any = None, rule: Any = None) -> Emitter:
+        surrogate: Any = None, rule: Any = None) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -126,8 +125,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
     surrogate = surrogate if surrogate is not None else Surrogate(
         hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size, num_batches=num_batches,
         learning_rate=learning_rate, features=features, gate=Gate() if gate else None,
-        validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer,
-        averaged=averaged)
+        validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer)
     chain = ((Steering(share=steering_share),) if steering_share else ()) + (
         Anchoring("auto", anchor), Fallback()) + ((StepAside(),) if step_aside else ())
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,

@@ -180,7 +180,7 @@ def predict(model: ModelState, actions: jax.Array, task: Task,
 
 def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: Task, learning_rate: jax.Array,
           batch_size: int, num_batches: int, feature_rows: int | None = None,
-          features: jax.Array | None = None, averaged: int = 0) -> tuple[ModelState, jax.Array]:
+          features: jax.Array | None = None) -> tuple[ModelState, jax.Array]:
     """`num_batches` Adam steps at `learning_rate`, each member on its own mini-batches of `batch_size` rows.
 
     `data` is a repertoire (its valid rows are the prefix [0, count)) or a
@@ -196,21 +196,18 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     actions, targets = data.actions, normalize_targets(data.behaviors, data.qualities, task)
     if feature_rows is None:
         return fit(model, key, normalize_actions(actions, task), targets, filled, learning_rate, batch_size,
-                   num_batches, averaged)
+                   num_batches)
     key, drawn = jax.random.split(key)
     rows = jax.random.randint(drawn, (feature_rows,), 0, filled)
     x = inputs(actions[rows], task, True) if features is None else inputs_with(actions[rows], features[rows], task)
-    return fit(model, key, x, targets[rows], jnp.int32(feature_rows), learning_rate, batch_size, num_batches,
-               averaged)
+    return fit(model, key, x, targets[rows], jnp.int32(feature_rows), learning_rate, batch_size, num_batches)
 
 
 def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,
-        learning_rate: jax.Array, batch_size: int, num_batches: int,
-        averaged: int = 0) -> tuple[ModelState, jax.Array]:
+        learning_rate: jax.Array, batch_size: int, num_batches: int) -> tuple[ModelState, jax.Array]:
     """`train`'s steps on normalized inputs [R, n] and targets [R, out] whose first `filled` (>= 1) rows are data:
     mean-squared error, each member's rows drawn uniformly with replacement. Returns the new state and the mean
-    loss over the steps and members. `averaged` > 0: the new parameters are the mean of the last `averaged`
-    steps' (tail averaging: less of the last mini-batches' noise), from which the next call goes on."""
+    loss over the steps and members."""
     import optax
 
     net, optimizer = _network_of(model), _optimizer()
@@ -229,19 +226,6 @@ def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array
 
     hyperparams = {**model.opt_state.hyperparams, "learning_rate": jnp.asarray(learning_rate, jnp.float32)}
     opt_state = model.opt_state._replace(hyperparams=hyperparams)
-    if averaged:
-        if not 0 < averaged <= num_batches:
-            raise ValueError(f"averaged={averaged!r} is invalid: expected 0 or 1..num_batches ({num_batches})")
-        (params, opt_state), losses = jax.lax.scan(step, (model.params, opt_state), rows[:-averaged], unroll=2)
-
-        def averaging(carry: tuple[Any, Any, Any], idx: jax.Array) -> tuple[tuple[Any, Any, Any], jax.Array]:
-            (params, opt_state), loss = step(carry[:2], idx)
-            return (params, opt_state, jax.tree.map(lambda s, p: s + p / averaged, carry[2], params)), loss
-
-        start = (params, opt_state, jax.tree.map(jnp.zeros_like, params))
-        (_, opt_state, params), tail = jax.lax.scan(averaging, start, rows[-averaged:], unroll=2)
-        losses = jnp.concatenate([losses, tail])
-    else:
-        (params, opt_state), losses = jax.lax.scan(step, (model.params, opt_state), rows, unroll=2)
+    (params, opt_state), losses = jax.lax.scan(step, (model.params, opt_state), rows, unroll=2)
     return (ModelState(params=params, opt_state=opt_state, steps=model.steps + num_batches),
             losses.mean() / ensemble_size(model))

@@ -91,11 +91,10 @@ class Surrogate:
     features: bool = False
     feature_rows: int = 1024
     gate: Gate | None = None
-    averaged: int = 0
 
     def __post_init__(self) -> None:
         for name, lowest in (("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1), ("num_batches", 1),
-                             ("rollout_buffer", 1), ("feature_rows", 1), ("averaged", 0)):
+                             ("rollout_buffer", 1), ("feature_rows", 1)):
             value = getattr(self, name)
             if not (is_int(value) and value >= lowest):
                 raise ValueError(f"Surrogate.{name}={value!r} is invalid: expected an int >= {lowest}")
@@ -205,7 +204,7 @@ class Surrogate:
             has_data, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
                                           self.num_batches, self.feature_rows if self.featured(task) else None,
                                           self._kept(repertoire, task)
-                                          if self.training_data == "repertoire" else None, self.averaged),
+                                          if self.training_data == "repertoire" else None),
             lambda: (state.model, jnp.float32(jnp.nan)))
         return state.replace(model=trained), loss
 
