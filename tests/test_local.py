@@ -1,8 +1,6 @@
 """The local surrogate (`mqd_jax.surrogate.local`): its fit against a brute-force weighted least squares, exact on an
 affine map, differentiable, fed every rollout through the protocol's `observe`."""
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,6 +10,7 @@ from mqd_jax import Config, run_mqd
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.run import get_task
 from mqd_jax.emitters import presets
+from mqd_jax.surrogate import protocol
 from mqd_jax.surrogate.local import LocalLinear, spd_solve
 
 TASK = get_task(Config(task="obstacle2d"))  # actions n = 9, behaviors d = 2
@@ -94,9 +93,8 @@ def test_in_mqd_it_observes_every_generation_s_rollouts_and_a_broken_observe_is_
         def observe(self, key, state, *args, **kwargs):
             return state.replace(qualities=state.qualities[:-1])
 
-    broken = dataclasses.replace(cfg, algorithm=presets.mqd(surrogate=Reshaping(buffer=64), warmup_samples=16))
     with pytest.raises(ValueError, match=r"^Reshaping.observe returned a state .*expected one of the structure"):
-        run_mqd(jax.random.PRNGKey(0), broken)
+        _fed(protocol.hooks(Reshaping(buffer=64)), _actions(0, 8), np.zeros((8, 3)))
 
 
 @pytest.mark.parametrize(("options", "message"), [

@@ -51,7 +51,8 @@ class LocalLinear:
     """Locally weighted linear regression on the latest rollouts (module doc).
 
     Attributes:
-      neighbours: the rollouts each fit reads; None: 4 (n + 1) for n action dimensions (four per coefficient).
+      neighbours: the rollouts each fit reads (at most `buffer`); None: 4 (n + 1) for n action dimensions (four
+        per coefficient).
       ridge: the penalty on the slopes J, in normalized action units (the intercept is not penalized).
       buffer: the latest usable rollouts kept.
     """
