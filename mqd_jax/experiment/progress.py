@@ -150,12 +150,20 @@ def for_output(label: str, total: int, cfg: Config | None = None, folder: str | 
     """`Bar` where standard output is a terminal and tqdm is installed (the `plot` extra), else `Lines`; either
     remembers how long `cfg`'s compile took in `folder` (the compilation cache's) and says it the next time, and
     says `cache_note` of the cache."""
-    if sys.stdout.isatty():
-        try:
-            return Bar(label, total, cfg, folder, cache_note)
-        except ImportError:
-            pass
+    if _terminal_tqdm() is not None:
+        return Bar(label, total, cfg, folder, cache_note)
     return Lines(label, total, cfg, folder, cache_note)
+
+
+def _terminal_tqdm() -> Any:
+    """tqdm's bar class where standard output is a terminal and tqdm is installed (the `plot` extra), else None."""
+    if not sys.stdout.isatty():
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return tqdm
 
 
 class Steps:
@@ -164,13 +172,8 @@ class Steps:
     step's line is printed either way (above the bar, which stays at the bottom)."""
 
     def __init__(self, label: str, total: int, unit: str) -> None:
-        self.bar = None
-        if sys.stdout.isatty():
-            try:
-                from tqdm.auto import tqdm
-            except ImportError:
-                return
-            self.bar = tqdm(total=total, desc=label, unit=unit, dynamic_ncols=True, leave=True)
+        tqdm = _terminal_tqdm()
+        self.bar = None if tqdm is None else tqdm(total=total, desc=label, unit=unit, dynamic_ncols=True, leave=True)
 
     def step(self, line: str, now: str = "") -> None:
         """One step done: its `line` printed; `now`, the step just done, beside the bar."""
