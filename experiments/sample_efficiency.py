@@ -57,7 +57,6 @@ from mqd_jax.core import algorithms, registry
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
-from mqd_jax.emitters import presets
 from mqd_jax.experiment import results, stats
 from mqd_jax.experiment.progress import Progress
 from mqd_jax.experiment.sweep import run_batch, seed_keys
@@ -112,12 +111,11 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     fields = {f.name for f in dataclasses.fields(Config)} - {"algorithm", "algorithm_options", "task"}
     changed = {field: options.pop(field) for field in fields & set(options)}
     length = {} if generations is None else {"max_generations": generations}
-    local = {f: options.pop(f) for f in ("neighbours", "ridge", "buffer") if f in options and name == "local"}
     try:
-        cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
         if name == "local":  # "mqd" with the local surrogate, its options beside the preset's
-            cfg = dataclasses.replace(cfg, algorithm=presets.mqd(**options, surrogate=LocalLinear(**local)),
-                                      algorithm_options={})
+            options["surrogate"] = LocalLinear(**{f: options.pop(f) for f in ("neighbours", "ridge", "buffer")
+                                                  if f in options})
+        cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
         if name == "oracle":  # the preset's acquisition fed the true outcomes
             oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1),
                                          parts=tuple(p for p in cfg.emitter.parts if p.name != "fallback"))

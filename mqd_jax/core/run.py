@@ -253,9 +253,14 @@ def _settled(compute: Callable[[], Any]) -> Any:
     (`checks.part_failures`), not later where its results are first read."""
     with checks.part_failures():
         out = compute()
-        if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(out)):
+        if _concrete(out):
             jax.block_until_ready(out)
     return out
+
+
+def _concrete(tree: Any) -> bool:
+    """Whether `tree` holds no tracer (its function was called outside a jit or vmap)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -420,7 +425,7 @@ def tell(state: State, candidates: Candidates, behaviors: jax.Array, qualities: 
     """
     params = _checked(state, cfg, params)
     asked, now = candidates.generation, state.generation
-    if not any(isinstance(x, jax.core.Tracer) for x in (asked, now)) and int(asked) != int(now):
+    if _concrete((asked, now)) and int(asked) != int(now):
         raise ValueError(f"tell: these candidates were asked at generation {int(asked)}, the state is at generation "
                          f"{int(now)}: tell each ask's candidates once, with the state ask was given, then ask again")
     behaviors, qualities, valid = (jnp.asarray(x) for x in (behaviors, qualities, valid))
@@ -500,12 +505,9 @@ def run_mqd(key: jax.Array, cfg: Config, params: Params | None = None) -> tuple[
     if params is None:
         params = cfg.params()  # as arguments: the same compiled run for the config's values and others
     check_params(params, cfg)
-    with checks.part_failures():  # raised as the program runs, or as its results are read
-        state, metrics = _run_mqd(key, cfg, params)
-        concrete = not any(isinstance(m, jax.core.Tracer) for m in metrics.values())  # not inside a jit or vmap
-        seen = jax.device_get(metrics) if concrete else None
-    if seen is not None:
-        diagnostics.warn(seen, cfg, get_task(cfg))
+    state, metrics = _settled(lambda: _run_mqd(key, cfg, params))
+    if _concrete(metrics):
+        diagnostics.warn(jax.device_get(metrics), cfg, get_task(cfg))
     return state, metrics
 
 

@@ -93,8 +93,8 @@ class LocalLinear:
         ys = jnp.concatenate([state.behaviors, state.qualities[:, None]], axis=-1)  # [A, d + 1]
         filled = jnp.arange(xs.shape[0]) < state.total
         # Squared distances by one product (not an [N, A, n] difference); the search is not differentiated.
-        sq = (jax.lax.stop_gradient(x) ** 2).sum(-1)[:, None] + (xs ** 2).sum(-1)[None] \
-            - 2.0 * jax.lax.stop_gradient(x) @ xs.T
+        searched = jax.lax.stop_gradient(x)
+        sq = (searched ** 2).sum(-1)[:, None] + (xs ** 2).sum(-1)[None] - 2.0 * searched @ xs.T
         k = min(self.neighbours or 4 * (task.action_dim + 1), xs.shape[0])
         _, rows = jax.lax.top_k(jnp.where(filled, -sq, -jnp.inf), k)  # [N, k]
         z = xs[rows] - x[:, None]  # [N, k, n], differentiable in x
