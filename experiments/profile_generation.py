@@ -21,7 +21,6 @@ import report
 from mqd_jax import Config, ModelEmitter, init
 from mqd_jax.core import coverage, repertoire
 from mqd_jax.core.run import ask, generation, get_task, run_generations
-from mqd_jax.surrogate import model
 
 
 def main() -> None:
@@ -50,10 +49,9 @@ def main() -> None:
     }
     emitter = cfg.emitter
     if isinstance(emitter, ModelEmitter):
-        surrogate = emitter.surrogate
-        stages[f"model training ({surrogate.num_batches} Adam steps)"] = jax.jit(
-            lambda s: model.train(s.emitter.surrogate.model, key, s.repertoire, task,
-                                  params.emitter.surrogate.learning_rate, surrogate.batch_size, surrogate.num_batches))
+        steps = getattr(emitter.surrogate, "num_batches", None)  # the surrogate's `fit`, its features included
+        stages["model training" + (f" ({steps} Adam steps)" if steps else "")] = jax.jit(
+            lambda s: emitter.model.fit(key, s.emitter.surrogate, s.repertoire, task, params.emitter.surrogate))
     print(f"{args.task}, {args.algorithm}, repertoire of {int(state.repertoire.count)} skills after {args.grow} "
           f"generations (capacity {cfg.capacity}); {report.machine()}; median of {args.repeats} calls.\n")
     print("| stage | ms |\n|---|---|")

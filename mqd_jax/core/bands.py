@@ -41,7 +41,7 @@ def bands(queries: jax.Array, query_ok: jax.Array, rows: jax.Array, row_ok: jax.
     coordinate = jnp.take(queries, axis, axis=1)
     scale = jnp.maximum(jnp.where(row_ok, jnp.abs(values), 0.0).max(),
                         jnp.where(query_ok, jnp.abs(coordinate), 0.0).max())
-    half = t_dist * 1.001 + 8 * jnp.finfo(jnp.float32).eps * scale
+    half = grid.margined(t_dist, scale, 8)
     order = jnp.argsort(values, stable=True)
     ordered = values[order]
     lo = jnp.searchsorted(ordered, coordinate - half, "left")

@@ -49,6 +49,12 @@ class Cells:
     longest: jax.Array
 
 
+def margined(t_dist: jax.Array, scale: jax.Array, ulps: int) -> jax.Array:
+    """t_dist widened for rounding: by 0.1% and by `ulps` float32 epsilons of `scale`, the largest coordinate's
+    magnitude (distances and positions computed in float32 may differ by that much from exact ones)."""
+    return t_dist * 1.001 + ulps * jnp.finfo(jnp.float32).eps * scale
+
+
 def cells(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> Cells:
     """points [N, d] (those ok [N]) binned in cells a little wider than t_dist (a margin for rounding, so that
     points within t_dist are never two cells apart)."""
@@ -60,7 +66,7 @@ def cells(points: jax.Array, ok: jax.Array, t_dist: jax.Array) -> Cells:
     coordinates = jnp.take(points, axes, axis=1)
     low = jnp.where(ok[:, None], coordinates, jnp.inf).min(axis=0)
     scale = jnp.where(ok[:, None], jnp.abs(coordinates), 0.0).max()
-    width = t_dist * 1.001 + 16 * jnp.finfo(jnp.float32).eps * scale
+    width = margined(t_dist, scale, 16)
     cell = jnp.clip(jnp.floor((coordinates - low) / width), 0, SPAN - 3).astype(jnp.int32)
     cell = jnp.where(ok[:, None], cell + 1, 0)
     none = jnp.iinfo(jnp.int32).max
