@@ -1,7 +1,7 @@
 """Which signals tell a niche-opener from the rest of a pool, and how rugged a task is under QD's mutation.
 
     python experiments/opener_signals.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 2]
-        [--pools 4] [--ensemble 1] [--out docs/data/opener_signals_v20.md]
+        [--pools 4] [--ensemble 1] [--surrogate network] [--out docs/data/opener_signals_v20.md]
 
 For each task and seed: a run of the "mqd" preset for `--generations` generations, then `--pools`
 pools of 8 x 100 IsoLine children of its final repertoire (what "mqd" chooses its rollouts
@@ -29,7 +29,9 @@ did: opened a niche of the repertoire their generation began with, or not; run t
 with its rank multiplied by the anchored novelty-5's; and a model relative to the parent (a network fitted on
 the other pools to the change of behavior from the parent's, from the parent's action and the child's step),
 scored at the parent's behavior plus the predicted change; with `--ensemble E` ("mqd" with E members), the
-members' spread alone and added to the anchored distance (optimism, as `Diverse` ranks with an ensemble). And
+members' spread alone and added to the anchored distance (optimism, as `Diverse` ranks with an ensemble). With
+`--surrogate local` the run is "mqd" with `LocalLinear` in place of the network (`mqd_jax.surrogate.local`), and
+"the run's model" rows are its predictions. And
 the task's ruggedness: quartiles of the distance between a child's behavior and its first
 parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
 sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
@@ -52,6 +54,7 @@ from mqd_jax.core.run import get_task, init, run_generations
 from mqd_jax.core.task import Task
 from mqd_jax.emitters.parts import Pooled
 from mqd_jax.surrogate import model
+from mqd_jax.surrogate.local import LocalLinear
 
 POOL, CHOSEN = 800, 100
 HISTORY = 20  # the run's last generations whose rollouts' outcomes its own classifier of openers learns
@@ -163,11 +166,14 @@ def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tupl
     return state, history
 
 
-def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1
+def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1, surrogate: str = "network"
             ) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
-    number of skills. `ensemble` > 1: "mqd" with that many members, and the signals of their spread."""
-    options = {"ensemble_size": ensemble} if ensemble > 1 else {}
+    number of skills. `ensemble` > 1: "mqd" with that many members, and the signals of their spread; `surrogate`
+    "local": "mqd" with `LocalLinear`."""
+    options: dict[str, Any] = {"ensemble_size": ensemble} if ensemble > 1 else {}
+    if surrogate == "local":
+        options["surrogate"] = LocalLinear()
     cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations, algorithm_options=options)
     state, history = _run_with_history(cfg, seed, HISTORY)
     task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
@@ -239,18 +245,21 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
 
 
 def main() -> None:
-    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md", pools=4,
-                                  ensemble=1)
+    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md",
+                                  {"surrogate": ("network", "local")}, pools=4, ensemble=1)
     register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds} --pools {args.pools}"
-             + (f" --ensemble {args.ensemble}`" if args.ensemble > 1 else "`"), "",
+             + (f" --ensemble {args.ensemble}" if args.ensemble > 1 else "")
+             + (f" --surrogate {args.surrogate}`" if args.surrogate != "network" else "`"), "",
              f"Machine: {report.machine()}.", "",
-             f"After {args.generations} generations of \"mqd\": {args.pools} pools of {POOL} IsoLine children per "
-             f"seed, all rolled out; an opener would open a niche. AUC: P(opener scores higher), 0.5 = chance; "
+             f"After {args.generations} generations of \"mqd\""
+             + (" with `LocalLinear`" if args.surrogate == "local" else "")
+             + f": {args.pools} pools of {POOL} IsoLine children per seed, all rolled out; an opener would open a "
+             f"niche. AUC: P(opener scores higher), 0.5 = chance; "
              f"precision@{CHOSEN}: openers among the {CHOSEN} best-scored. Mean over seeds and pools.", ""]
     for task_name in args.tasks:
-        per_seed = [signals(task_name, args.generations, seed, args.pools, args.ensemble)
+        per_seed = [signals(task_name, args.generations, seed, args.pools, args.ensemble, args.surrogate)
                     for seed in range(args.seeds)]
         stats = {k: np.mean([s[1][k] for s in per_seed]) for k in per_seed[0][1]}
         lines += [f"### {task_name}", "",

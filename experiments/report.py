@@ -34,14 +34,18 @@ def median_ms(fn: Callable[[], object], repeats: int) -> float:
     return statistics.median(times) * 1e3
 
 
-def probe_arguments(doc: str, tasks: list[str], seeds: int, out: str, **ints: int) -> argparse.Namespace:
+def probe_arguments(doc: str, tasks: list[str], seeds: int, out: str, choices: dict[str, tuple[str, ...]] | None = None,
+                    **ints: int) -> argparse.Namespace:
     """The command line of a probe of "mqd" runs: --tasks, --generations (default 100), --seeds, one int option
-    per `ints` (name: default) and --out; the description is the first line of `doc`."""
+    per `ints` (name: default), one option per `choices` (name: its values, the first the default) and --out; the
+    description is the first line of `doc`."""
     parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=tasks)
     parser.add_argument("--generations", type=int, default=100)
     parser.add_argument("--seeds", type=int, default=seeds)
     for name, default in ints.items():
         parser.add_argument(f"--{name}", type=int, default=default)
+    for name, values in (choices or {}).items():
+        parser.add_argument(f"--{name}", choices=values, default=values[0])
     parser.add_argument("--out", default=out)
     return parser.parse_args()
