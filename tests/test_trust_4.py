@@ -13,7 +13,7 @@ import pytest
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.run import init
-from mqd_jax.experiment import cli, folders, results
+from mqd_jax.experiment import checkpoint, cli, folders, results
 from mqd_jax.experiment import progress as progress_lib
 
 TINY = ["--generations", "4", "--population", "8", "--capacity", "64", "--chunk", "2", "--algorithm", "random"]
@@ -142,7 +142,10 @@ def test_a_sweeps_batch_resumes_where_it_stopped_bit_for_bit(tmp_path, capsys, m
            "command continues this batch from generation 4" in err
     assert (tmp_path / "stopped" / f"obstacle2d_qd{results.PART}").exists()
     monkeypatch.undo()
+    part, reads, read = str(tmp_path / "stopped" / f"obstacle2d_qd{results.PART}"), [], checkpoint.read
+    monkeypatch.setattr(checkpoint, "read", lambda path: reads.append(path) or read(path))
     cli.main([*argv[:-1], "3", "--out", str(tmp_path / "stopped")])  # another --chunk: the batch keeps its own
+    assert reads.count(part) == 1  # its checkpoint is read once (a large batch's is hundreds of MB)
     out = capsys.readouterr().out
     assert "continues in chunks of 2 generations, as it began" in out
     assert "resuming at generation 4 of 6" in out

@@ -165,9 +165,10 @@ def read(path: str) -> dict[str, Any]:
     return payload
 
 
-def load(path: str, cfg: Config, key: jax.Array) -> tuple[State, Metrics]:
-    """The state and metrics saved in `path` by a run of `cfg` started from `key`."""
-    payload = read(path)
+def load(path: str, cfg: Config, key: jax.Array, payload: dict[str, Any] | None = None) -> tuple[State, Metrics]:
+    """The state and metrics saved in `path` by a run of `cfg` started from `key` (`payload`: what `read(path)`
+    gave a caller that read it already, so that the file is read once)."""
+    payload = read(path) if payload is None else payload
     done = int(np.asarray(payload["state"]["generation"]).reshape(-1)[0]) if payload["key"].size else 0
     if not 0 <= done <= cfg.max_generations:
         raise Refused(path, f"it is at generation {done}, outside 0 to {cfg.max_generations}, its run's length")

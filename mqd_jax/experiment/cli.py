@@ -450,7 +450,8 @@ def _resumed_batch(args: argparse.Namespace, part: str, cfg: Config, keys: np.nd
     if not folders.is_file(part) or os.path.basename(part) not in folders.written(args.out):
         return None, args.chunk
     try:
-        chunk = checkpoint.read(part).get("chunk")
+        payload = checkpoint.read(part)
+        chunk = payload.get("chunk")
         if not (isinstance(chunk, int) and chunk >= 1):
             raise checkpoint.Refused(part, "it records no chunk size")
     except ValueError as e:
@@ -458,7 +459,7 @@ def _resumed_batch(args: argparse.Namespace, part: str, cfg: Config, keys: np.nd
               f"{', '.join(folders.set_aside([part]))}")
         return None, args.chunk
     try:
-        states, metrics = checkpoint.load(part, cfg, keys)
+        states, metrics = checkpoint.load(part, cfg, keys, payload)
     except checkpoint.Refused as e:
         if not args.overwrite:
             raise ValueError(f"{e}. Pass --overwrite to run the batch afresh (it deletes that checkpoint), or "
