@@ -103,3 +103,14 @@ def test_in_mqd_it_observes_every_generation_s_rollouts_and_a_broken_observe_is_
 def test_bad_options_are_refused(options, message):
     with pytest.raises(ValueError, match=message):
         LocalLinear(**options)
+
+
+def test_the_named_preset_is_mqd_with_the_local_surrogate_and_a_saved_config_rebuilds_it():
+    cfg = Config.paper("push_cube", algorithm="mqd-local", algorithm_options={"neighbours": 32, "pool_factor": 4})
+    assert cfg.emitter == presets.mqd(surrogate=LocalLinear(neighbours=32), pool_factor=4)
+    assert Config.paper("obstacle2d", algorithm="mqd-local").emitter == presets.mqd(surrogate=LocalLinear())
+    assert Config.from_dict(cfg.to_dict()) == cfg  # a part given in Python could not be rebuilt from a file
+    with pytest.raises(ValueError, match=r"mqd-local: neighbours=1 is invalid: expected 0 \(4 \(n \+ 1\)\)"):
+        Config.paper("obstacle2d", algorithm="mqd-local", algorithm_options={"neighbours": 1})
+    with pytest.raises(ValueError, match="hidden_size"):  # the network's options are not the preset's
+        Config.paper("obstacle2d", algorithm="mqd-local", algorithm_options={"hidden_size": 64})

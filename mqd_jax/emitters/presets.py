@@ -11,6 +11,7 @@ a gradient transformation).
     mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua),
                                                                           Surrogate())
                                                              (or Budgeted(pool_factor) when budgeted)
+    mqd_local(neighbours=0, ridge=1e-3, buffer=4096, ...) -> mqd(surrogate=LocalLinear(...), ...)
 
 Each preset's defaults are in its signature: the model's are Table II's 2D column (`TABLE_II` holds both
 columns). They are registered with `mqd_jax.core.algorithms`: a `Config` names a preset as `algorithm="mqd"`
@@ -18,7 +19,9 @@ with `algorithm_options={"pool_factor": 16}`, checked against the signature (`al
 `algorithms.build`); `k` is the run's (`Config.k`), passed by the config. An option whose default is None takes a
 part given in Python (`presets.mqd(surrogate=KNN())`, or `algorithm_options={"surrogate": KNN()}`), which
 replaces that part and keeps the preset's others.
-"mqd" is the best composition measured (docs/results.md); "mqd-paper" reproduces the paper's Algorithm 1.
+"mqd" is the best composition measured (docs/results.md); "mqd-paper" reproduces the paper's Algorithm 1;
+"mqd-local" is "mqd" with the network-free `LocalLinear` surrogate, by name, so that a file can name it (a part
+given in Python cannot be rebuilt from a saved config).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import inspect
 from typing import Any
 
 from mqd_jax.core import algorithms
+from mqd_jax.core.checks import is_int
 from mqd_jax.core.emitter import Emitter
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.emitters.anchoring import Anchoring
@@ -36,6 +40,7 @@ from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.emitters.steering import Steering
 from mqd_jax.emitters.step_aside import StepAside
 from mqd_jax.surrogate.gate import Gate
+from mqd_jax.surrogate.local import LocalLinear
 from mqd_jax.surrogate.surrogate import Surrogate
 from mqd_jax.surrogate.validity import Validity
 
@@ -149,8 +154,26 @@ def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: boo
                         warmup_samples=warmup_samples)
 
 
+def mqd_local(neighbours: int = 0, ridge: float = 1e-3, buffer: int = 4096, k: int = 5, pool_factor: int = 8,
+              optimism: float = 1.0, parent_weight: float = 1.0, quality_share: float = 0.1, wide_scale: float = 2.0,
+              steering_share: float = 0.25, anchor: str = "parent", warmup_samples: int = 1000,
+              iso_sigma: float = 0.02, line_sigma: float = 0.1, rule: Any = None) -> Emitter:
+    """`mqd` with `LocalLinear(neighbours, ridge, buffer)` as its surrogate (`mqd_jax.surrogate.local`: a fit to
+    each candidate's `neighbours` nearest of the latest `buffer` rollouts, 0: 4 (n + 1) for n action dimensions),
+    the other options `mqd`'s. Fewer rollouts than the network on several tasks and QD's quality, at more time per
+    generation (docs/results.md)."""
+    if not (is_int(neighbours) and (neighbours == 0 or neighbours >= 2)):
+        raise ValueError(f"mqd-local: neighbours={neighbours!r} is invalid: expected 0 (4 (n + 1)) or an int >= 2")
+    return mqd(k=k, pool_factor=pool_factor, optimism=optimism, parent_weight=parent_weight,
+               quality_share=quality_share, wide_scale=wide_scale, steering_share=steering_share, anchor=anchor,
+               warmup_samples=warmup_samples, iso_sigma=iso_sigma, line_sigma=line_sigma,
+               surrogate=LocalLinear(neighbours or None, ridge, buffer), rule=rule)
+
+
 # The presets `Config.algorithm` may name, in the order tables show them; the model's options per Table II column.
 algorithms.register("mqd", mqd, TABLE_II)
 algorithms.register("mqd-paper", mqd_paper, TABLE_II)
 algorithms.register("qd", qd)
 algorithms.register("random", random)
+algorithms.register("mqd-local", mqd_local, {column: {"warmup_samples": settings["warmup_samples"]}
+                                             for column, settings in TABLE_II.items()})

@@ -52,6 +52,7 @@ COLUMNS = {"paper-2d": Config.paper_2d, "paper-robot": Config.paper_robot}
 # Short flags kept from the first versions of the CLI.
 _ALIASES = {"max_generations": ["--generations"], "population_size": ["--population"]}
 _PER_TASK = ("task", "algorithm")  # `sweep` takes these as lists
+SWEPT = ("mqd", "mqd-paper", "qd", "random")  # a bare `mqd sweep`'s algorithms
 RUN_FILES = ("metrics.json", "repertoire.npz", "run.png", "checkpoint.msgpack")
 SEEDS = 2**32  # a run's key is PRNGKey(seed): seeds 0 .. 2**32 - 1 give distinct keys
 _RUN_DEFAULTS = {"max_generations": 100}  # the main job is a short run
@@ -669,8 +670,8 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParse
     _add_config_flags(sw, skip=_PER_TASK)
     sw.add_argument("--tasks", nargs="+", default=list(registry.registered_tasks()), metavar="TASK",
                     help=f"tasks to sweep: {_task_names()} (default: every registered task)")
-    sw.add_argument("--algorithms", nargs="+", default=list(algorithms.names()), choices=algorithms.names(),
-                    help="default: all four")
+    sw.add_argument("--algorithms", nargs="+", default=list(SWEPT), choices=algorithms.names(),
+                    help=f"default: {' '.join(SWEPT)} (the paper's comparison and this library's M-QD)")
     sw.add_argument("--seeds", type=_positive, default=None,
                     help="default: the paper's, 25 (2D tasks) or 10 (robot tasks)")
     sw.add_argument("--chunk", type=_positive, default=25,

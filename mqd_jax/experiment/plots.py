@@ -197,9 +197,9 @@ def figure2(task: Task, name: str, runs: dict[str, Runs], path: str, pair: tuple
     if plt is None:
         return None
     fig, axes = plt.subplots(1, 3 + len(runs), figsize=(4.6 * (3 + len(runs)), 4.6))
-    fig.suptitle(f"{name}: {', '.join(f'{NAMES[a]} ({len(r.keys)} seeds)' for a, r in runs.items())}")
+    fig.suptitle(f"{name}: {', '.join(f'{NAMES.get(a, a)} ({len(r.keys)} seeds)' for a, r in runs.items())}")
     for alg, r in runs.items():
-        metrics_panel(axes[:3], r.metrics, NAMES[alg])
+        metrics_panel(axes[:3], r.metrics, NAMES.get(alg, alg))
     for ax in axes[:2]:
         ax.legend(fontsize=7)
     seed0 = [r.qualities[0, :r.count[0]] for r in runs.values()]
@@ -207,7 +207,7 @@ def figure2(task: Task, name: str, runs: dict[str, Runs], path: str, pair: tuple
                                                                              for q in seed0)))
     limits = limits if np.isfinite(limits).all() else None
     for ax, (alg, r), q in zip(axes[3:], runs.items(), seed0, strict=True):
-        points = repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES[alg]}, seed 0",
+        points = repertoire(ax, task, r.behaviors[0, :r.count[0]], f"{NAMES.get(alg, alg)}, seed 0",
                             projections(task.behavior_dim, pair)[0], q, limits)
     fig.colorbar(points, ax=axes[-1], label="quality (one scale for all)", shrink=0.85)
     return save(fig, path)

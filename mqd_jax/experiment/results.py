@@ -66,7 +66,8 @@ from mqd_jax.experiment.provenance import machine, provenance
 from mqd_jax.experiment.stats import mann_whitney
 from mqd_jax.version import __version__
 
-NAMES = {"mqd": "M-QD", "mqd-paper": "M-QD (paper's filter)", "qd": "QD", "random": "RANDOM"}
+NAMES = {"mqd": "M-QD", "mqd-paper": "M-QD (paper's filter)", "qd": "QD", "random": "RANDOM",
+         "mqd-local": "M-QD (local fits)"}
 # The paper's name (`Task.paper_coverage`'s key) of each preset that reproduces one of its algorithms.
 PAPER_ALGORITHM = {"mqd-paper": "mqd", "qd": "qd", "random": "random"}
 # The tables and figures made from a sweep folder's files.
@@ -484,7 +485,7 @@ def tables(runs: dict[str, dict[str, Runs]], missing: list[tuple[str, str]] = ()
                  if a in PAPER_ALGORITHM and r.cfg == Config.paper(task, algorithm=a) else None)
         return _pm(r.final("coverage")) + (f" (paper {paper[0]} +- {paper[1]})" if paper else "") + failed(r)
 
-    head = [row("task", *(NAMES[a] for a in algs)), "|---" * (len(algs) + 1) + "|"]
+    head = [row("task", *(NAMES.get(a, a) for a in algs)), "|---" * (len(algs) + 1) + "|"]
     absent = [f"Missing: {', '.join(f'{t} {NAMES.get(a, a)}' for t, a in missing)}: planned by `mqd sweep` in "
               "this folder but not in it (the sweep was interrupted or failed there; the same command runs them)",
               ""] if missing else []
@@ -510,7 +511,8 @@ def tables(runs: dict[str, dict[str, Runs]], missing: list[tuple[str, str]] = ()
                              coverage_measure(r.cfg, r.final("coverage"))))
     lines += ["", "Evaluations (rollouts) per run; wall time of each batch of seeds (compilation included); "
               "two-sided Mann-Whitney U p-values on final coverage", "",
-              row("task", *(f"{NAMES[a]} evaluations" for a in algs), *(f"{NAMES[a]} wall s" for a in algs),
+              row("task", *(f"{NAMES.get(a, a)} evaluations" for a in algs),
+                  *(f"{NAMES.get(a, a)} wall s" for a in algs),
                   "p M-QD vs QD", "p QD vs RANDOM"), "|---" * (2 * len(algs) + 3) + "|"]
     lines += [row(t, *cells(t, lambda a, r: f"{r.final('num_evaluations').mean():.0f}"),
                   *cells(t, lambda a, r: f"{r.wall_s:.0f}"), _p_value(by, "mqd", "qd"), _p_value(by, "qd", "random"))
