@@ -30,7 +30,7 @@ with its rank multiplied by the anchored novelty-5's; and a model relative to th
 the other pools to the change of behavior from the parent's, from the parent's action and the child's step),
 scored at the parent's behavior plus the predicted change; with `--ensemble E` ("mqd" with E members), the
 members' spread alone and added to the anchored distance (optimism, as `Diverse` ranks with an ensemble). With
-`--surrogate local` the run is "mqd" with `LocalLinear` in place of the network (`mqd_jax.surrogate.local`), and
+`--surrogate local` the run is "mqd-local" (`LocalLinear` in place of the network, `mqd_jax.surrogate.local`), and
 "the run's model" rows are its predictions. And
 the task's ruggedness: quartiles of the distance between a child's behavior and its first
 parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
@@ -54,7 +54,6 @@ from mqd_jax.core.run import get_task, init, run_generations
 from mqd_jax.core.task import Task
 from mqd_jax.emitters.parts import Pooled
 from mqd_jax.surrogate import model
-from mqd_jax.surrogate.local import LocalLinear
 
 POOL, CHOSEN = 800, 100
 HISTORY = 20  # the run's last generations whose rollouts' outcomes its own classifier of openers learns
@@ -170,11 +169,10 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
             ) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
     number of skills. `ensemble` > 1: "mqd" with that many members, and the signals of their spread; `surrogate`
-    "local": "mqd" with `LocalLinear`."""
-    options: dict[str, Any] = {"ensemble_size": ensemble} if ensemble > 1 else {}
-    if surrogate == "local":
-        options["surrogate"] = LocalLinear()
-    cfg = Config.paper(task_name, algorithm="mqd", max_generations=generations, algorithm_options=options)
+    "local": "mqd-local"."""
+    options = {"ensemble_size": ensemble} if ensemble > 1 else {}
+    cfg = Config.paper(task_name, algorithm="mqd-local" if surrogate == "local" else "mqd",
+                       max_generations=generations, algorithm_options=options)
     state, history = _run_with_history(cfg, seed, HISTORY)
     task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
     n, filled = int(rep.count), min(int(state.archive.total), state.archive.qualities.shape[0])

@@ -25,9 +25,9 @@ For each task and composition, from the mean over seeds of coverage [G] and roll
   * ms per generation (the batch's wall time after compiling, per generation) and its ratio to QD's
     in the same invocation (not with --sweep: its runs were timed in other processes).
 The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
-of the model's predictions: the ceiling of what a better model could buy. "local" is `"mqd"` with the
-surrogate `LocalLinear` (`mqd_jax.surrogate.local`) in place of the network ("local:neighbours=32,buffer=2048":
-its options, beside the preset's).
+of the model's predictions: the ceiling of what a better model could buy. "local" is the preset "mqd-local",
+`"mqd"` with the surrogate `LocalLinear` (`mqd_jax.surrogate.local`) in place of the network
+("local:neighbours=32,buffer=2048": its options).
 
 `--tasks arm`, `rugged_arm` and `rastrigin` are tasks none of this was tuned on (`extra_tasks.py`).
 
@@ -60,7 +60,6 @@ from mqd_jax.core.task import Task
 from mqd_jax.experiment import results, stats
 from mqd_jax.experiment.progress import Progress
 from mqd_jax.experiment.sweep import run_batch, seed_keys
-from mqd_jax.surrogate.local import LocalLinear
 from mqd_jax.surrogate.surrogate import SurrogateState
 
 
@@ -98,7 +97,7 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:
         raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
-    preset = "mqd" if name in ("oracle", "local") else name
+    preset = {"oracle": "mqd", "local": "mqd-local"}.get(name, name)
     options = {}
     for change in filter(None, changes.split(",")):
         option, equals, text = change.partition("=")
@@ -112,9 +111,6 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     changed = {field: options.pop(field) for field in fields & set(options)}
     length = {} if generations is None else {"max_generations": generations}
     try:
-        if name == "local":  # "mqd" with the local surrogate, its options beside the preset's
-            options["surrogate"] = LocalLinear(**{f: options.pop(f) for f in ("neighbours", "ridge", "buffer")
-                                                  if f in options})
         cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
         if name == "oracle":  # the preset's acquisition fed the true outcomes
             oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1),
