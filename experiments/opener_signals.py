@@ -1,7 +1,7 @@
 """Which signals tell a niche-opener from the rest of a pool, and how rugged a task is under QD's mutation.
 
     python experiments/opener_signals.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 2]
-        [--pools 4] [--ensemble 1] [--surrogate network] [--out docs/data/opener_signals_v20.md]
+        [--pools 4] [--ensemble 1] [--surrogate network] [--curiosity 0] [--out docs/data/opener_signals_v20.md]
 
 For each task and seed: a run of the "mqd" preset for `--generations` generations, then `--pools`
 pools of 8 x 100 IsoLine children of its final repertoire (what "mqd" chooses its rollouts
@@ -31,8 +31,10 @@ the other pools to the change of behavior from the parent's, from the parent's a
 scored at the parent's behavior plus the predicted change; with `--ensemble E` ("mqd" with E members), the
 members' spread alone and added to the anchored distance (optimism, as `Diverse` ranks with an ensemble). With
 `--surrogate local` the run is "mqd-local" (`LocalLinear` in place of the network, `mqd_jax.surrogate.local`), and
-"the run's model" rows are its predictions. And
-the task's ruggedness: quartiles of the distance between a child's behavior and its first
+"the run's model" rows are its predictions. With `--curiosity W` the run has `Curiosity(W)`
+(`mqd_jax.emitters.curiosity`), and the signals of its record: the factor of each child's parent's record, and
+the anchored distance times the parent's novelty (what `Diverse` ranks by, `parent_weight=1`), with and without
+the factor. And the task's ruggedness: quartiles of the distance between a child's behavior and its first
 parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
 sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 """
@@ -165,12 +167,13 @@ def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tupl
     return state, history
 
 
-def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1, surrogate: str = "network"
-            ) -> tuple[dict[str, list], dict[str, float]]:
+def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1, surrogate: str = "network",
+            curiosity: int = 0) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
     number of skills. `ensemble` > 1: "mqd" with that many members, and the signals of their spread; `surrogate`
-    "local": "mqd-local"."""
-    options = {"ensemble_size": ensemble} if ensemble > 1 else {}
+    "local": "mqd-local"; `curiosity` > 0: with `Curiosity(curiosity)`, and the signals of its record."""
+    options = ({"ensemble_size": ensemble} if ensemble > 1 else {}) | (
+        {"curiosity": float(curiosity)} if curiosity else {})
     cfg = Config.paper(task_name, algorithm="mqd-local" if surrogate == "local" else "mqd",
                        max_generations=generations, algorithm_options=options)
     state, history = _run_with_history(cfg, seed, HISTORY)
@@ -214,6 +217,13 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
         error = {f"{name}, nearest": float(np.mean((y[ok] - np.asarray(behaviors)[ok]) ** 2))
                  for name, y in predicted.items()}
         scored["parent's novelty"] = np.asarray(rep.novelty)[parents]
+        if curiosity:  # the run's record of each parent's children that opened niches (`Curiosity`)
+            part = next(x for x in emitter.parts if x.name == "curiosity")
+            record = np.asarray(part.factor(state.emitter.parts["curiosity"], pool.parents, rep))
+            ranks = scored["run's model, anchored, nearest"] * scored["parent's novelty"]
+            scored["parent's record (Curiosity's factor)"] = record
+            scored["anchored nearest x parent's novelty (Diverse's rank)"] = ranks
+            scored["anchored nearest x parent's novelty x record (with Curiosity)"] = ranks * record
         scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
         labelled.append((model.normalize_actions(pool.actions, task), opener))
         relative.append(_relative_data(pool.actions, behaviors, valid, rep, parents, task))
@@ -244,21 +254,23 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
 
 def main() -> None:
     args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md",
-                                  {"surrogate": ("network", "local")}, pools=4, ensemble=1)
+                                  {"surrogate": ("network", "local")}, pools=4, ensemble=1, curiosity=0)
     register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds} --pools {args.pools}"
              + (f" --ensemble {args.ensemble}" if args.ensemble > 1 else "")
+             + (f" --curiosity {args.curiosity}" if args.curiosity else "")
              + (f" --surrogate {args.surrogate}`" if args.surrogate != "network" else "`"), "",
              f"Machine: {report.machine()}.", "",
              f"After {args.generations} generations of \"mqd\""
              + (" with `LocalLinear`" if args.surrogate == "local" else "")
+             + (f" with `Curiosity({args.curiosity})`" if args.curiosity else "")
              + f": {args.pools} pools of {POOL} IsoLine children per seed, all rolled out; an opener would open a "
              f"niche. AUC: P(opener scores higher), 0.5 = chance; "
              f"precision@{CHOSEN}: openers among the {CHOSEN} best-scored. Mean over seeds and pools.", ""]
     for task_name in args.tasks:
-        per_seed = [signals(task_name, args.generations, seed, args.pools, args.ensemble, args.surrogate)
-                    for seed in range(args.seeds)]
+        per_seed = [signals(task_name, args.generations, seed, args.pools, args.ensemble, args.surrogate,
+                            args.curiosity) for seed in range(args.seeds)]
         stats = {k: np.mean([s[1][k] for s in per_seed]) for k in per_seed[0][1]}
         lines += [f"### {task_name}", "",
                   f"Skills after {args.generations} generations: {stats['skills']:.0f}; openers in a pool (base "

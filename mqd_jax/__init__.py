@@ -12,6 +12,7 @@ from mqd_jax.emitters import presets
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.emitters.anchoring import Anchoring
 from mqd_jax.emitters.baselines import IsoLine, Uniform
+from mqd_jax.emitters.curiosity import Curiosity
 from mqd_jax.emitters.imagination import Imagination
 from mqd_jax.emitters.model_emitter import ModelEmitter
 from mqd_jax.emitters.parts import Part, Share
@@ -31,6 +32,7 @@ __all__ = [
            "Budgeted",
            "Candidates",
            "Config",
+           "Curiosity",
            "Diverse",
            "Emitter",
            "Evaluated",

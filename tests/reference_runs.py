@@ -1,6 +1,6 @@
 """Saved runs that a refactor must repeat bit for bit: every preset on 2D Obstacle and PushCube.
 
-    python tests/reference_runs.py     # writes tests/data/reference_runs.npz (with the tests' XLA flags)
+    python tests/reference_runs.py [PATH]   # writes PATH, else tests/data/reference_runs.npz (the tests' XLA flags)
 
 `test_reference_runs.py` runs the same configs and compares every array of the final state and every metric
 with the saved ones. `reference_runs.npz` was written from the code of mqd-jax 0.9.0 on an AMD EPYC without
@@ -8,7 +8,9 @@ AVX-512; `reference_runs_avx512.npz` from the code of 0.12.0 (git 94c1f0c; "+dir
 CPU label only) on an AMD EPYC with AVX-512, whose vector units round C MuJoCo's physics and M-QD's training
 otherwise; `reference_runs_vp2intersect.npz` from the code of 0.16.0 (git f8099be; "+dirty": the [trust-4]
 tests copied into that checkout only) on an AMD EPYC whose AVX-512 has VP2INTERSECT (a later generation, reported
-under the same model name, whose PushCube runs differ from the previous one's in the fifth digit). Each file saves
+under the same model name, whose PushCube runs differ from the previous one's in the fifth digit);
+`reference_runs_vaes.npz` from the code of 0.22.0 (git 00f072e) on an AMD EPYC without AVX-512 but with VAES
+(family 25: its PushCube runs and one ulp of "mqd"'s metrics differ from the first file's). Each file saves
 its git revision and the CPU (`cpu_model`) beside the arrays; the test compares with the file of this machine's
 CPU: a change that alters a run's numbers shows here first.
 """
@@ -19,6 +21,7 @@ import json
 import os
 import pathlib
 import platform
+import sys
 
 # The tests' XLA flags (conftest.py): the saved arrays are what the tests compute.
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false")
@@ -32,7 +35,8 @@ from mqd_jax.experiment.provenance import provenance
 
 PATH = pathlib.Path(__file__).resolve().parent / "data" / "reference_runs.npz"
 # The saved runs, of the CPUs they were made on.
-PATHS = (PATH, PATH.with_name("reference_runs_avx512.npz"), PATH.with_name("reference_runs_vp2intersect.npz"))
+PATHS = (PATH, PATH.with_name("reference_runs_avx512.npz"), PATH.with_name("reference_runs_vp2intersect.npz"),
+         PATH.with_name("reference_runs_vaes.npz"))
 ALGORITHMS = ("qd", "random", "mqd", "mqd-paper")
 TASKS = ("obstacle2d", "push_cube")
 
@@ -49,15 +53,17 @@ def config(task: str, algorithm: str) -> Config:
 
 
 def cpu_model() -> str:
-    """The CPU's model name, whether it has AVX-512 and whether that has VP2INTERSECT (MuJoCo's physics and M-QD's
-    model may round otherwise on another one: one name, "AMD EPYC", covers processors of several generations)."""
+    """The CPU's model name, whether it has AVX-512 and whether that has VP2INTERSECT, or without AVX-512 whether it
+    has VAES (MuJoCo's physics and M-QD's model may round otherwise on another one: one name, "AMD EPYC", covers
+    processors of several generations)."""
     try:
         with open("/proc/cpuinfo") as f:
             lines = f.read().splitlines()
         name = next(line.split(":", 1)[1].strip() for line in lines if line.startswith("model name"))
         flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
-        return name + (" with AVX-512" if "avx512f" in flags else "") + (
-            " and VP2INTERSECT" if "avx512_vp2intersect" in flags else "")
+        if "avx512f" not in flags:
+            return name + (" with VAES" if "vaes" in flags else "")
+        return name + " with AVX-512" + (" and VP2INTERSECT" if "avx512_vp2intersect" in flags else "")
     except (OSError, StopIteration):
         return platform.processor() or platform.machine()
 
@@ -74,9 +80,10 @@ def main() -> None:
     saved = {f"{task}/{algorithm}/{name}": x for task in TASKS for algorithm in ALGORITHMS
              for name, x in arrays(task, algorithm).items()}
     about = {"cpu": cpu_model(), "provenance": provenance()}
-    PATH.parent.mkdir(exist_ok=True)
-    np.savez_compressed(PATH, about=np.asarray(json.dumps(about)), **saved)
-    print(f"wrote {PATH}: {len(saved)} arrays, {PATH.stat().st_size} bytes")
+    path = pathlib.Path(sys.argv[1]) if len(sys.argv) > 1 else PATH
+    path.parent.mkdir(exist_ok=True)
+    np.savez_compressed(path, about=np.asarray(json.dumps(about)), **saved)
+    print(f"wrote {path}: {len(saved)} arrays, {path.stat().st_size} bytes")
 
 
 if __name__ == "__main__":

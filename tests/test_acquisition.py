@@ -562,7 +562,7 @@ def flat(cfg):
     saved = cfg.to_dict()
     options = saved.pop("algorithm_options")
     later = ("features", "gate", "validity", "step_aside", "training_data", "rollout_buffer",  # options of 0.11, 0.16
-             "surrogate", "rule")  # and the parts of 0.18
+             "surrogate", "rule", "curiosity")  # and the parts of 0.18, the option of 0.23
     return {k: v for k, v in {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
                               "adaptation_step_size": 0.1, "adaptation_steps": 10}.items() if k not in later}
 

@@ -83,11 +83,16 @@ def test_the_elimination_solves_symmetric_positive_definite_systems():
 
 
 def test_in_mqd_it_observes_every_generation_s_rollouts_and_a_broken_observe_is_named():
-    emitter = presets.mqd(surrogate=LocalLinear(buffer=64), warmup_samples=16, steering_share=0)
+    emitter = presets.mqd(surrogate=LocalLinear(buffer=64), warmup_samples=16, steering_share=0, curiosity=1.0)
     cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=5)
     state, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     rolled = int(metrics["num_evaluations"][-1]) - int(metrics["invalid"].sum())
     assert int(state.emitter.surrogate.total) == rolled > 16  # through warm-up and after (not only the skills)
+    # So does the same run's `Curiosity` (test_curiosity.py): its record counts every row once, every opener once.
+    record = np.asarray(state.emitter.parts["curiosity"])
+    assert record.shape == (2, cfg.capacity + 1) and record[0].sum() == 8 * 5
+    assert record[1].sum() == np.asarray(metrics["added"]).sum() and (record[1] <= record[0]).all()
+    assert record[0, -1] >= 8 and record[1, :-1].sum() > 0  # the first generation has no parents, the later ones
 
     class Reshaping(LocalLinear):
         def observe(self, key, state, *args, **kwargs):

@@ -93,6 +93,8 @@ class Judged:
         sampling) reads. None where whoever judged did not say.
       warm_up: bool scalar, the emitter is still warming up (its rule's choice is not used this generation,
         and the model has not trained), or None where whoever judged did not say.
+      parents: [N] int32 each candidate's parent's slot (-1: none), or None where the inner emitter names no
+        parents or whoever judged did not say.
     """
 
     behaviors: jax.Array
@@ -107,6 +109,7 @@ class Judged:
     parent_novelty: jax.Array | None = None
     members: jax.Array | None = None
     warm_up: jax.Array | None = None
+    parents: jax.Array | None = None
 
     @property
     def plausible(self) -> jax.Array:

@@ -185,7 +185,8 @@ class ModelEmitter(Emitter):
                                  inner=init_emitter(self.inner, jax.random.fold_in(key, 1), task, capacity),
                                  evaluations=jnp.int32(0),
                                  acquisition=acquisition.state_of(self.acquisition, jax.random.fold_in(key, 5), task),
-                                 parts={part.name: part.init(jax.random.fold_in(key, 6), task) for part in self.parts})
+                                 parts={part.name: parts.initial(part, jax.random.fold_in(key, 6), task, capacity)
+                                        for part in self.parts})
 
     def view(self, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params | None,
              num: int) -> View:
@@ -209,7 +210,8 @@ class ModelEmitter(Emitter):
         """The model's view of actions [N, n] (their parents' slots [N], or None) against the repertoire."""
         view = self.view(state, repertoire, task, None, actions.shape[0])
         y, _ = self.predicted(state, actions, parents, self.model.inputs(actions, task), view)
-        return judged(self.model, state.surrogate, y, repertoire, actions, task, parents, view.warm_up, self.k)
+        return parts.judged(self.parts, state.parts, judged(self.model, state.surrogate, y, repertoire, actions, task,
+                                                            parents, view.warm_up, self.k), view)
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
@@ -230,6 +232,7 @@ class ModelEmitter(Emitter):
             y, predicted = self.predicted(state, pool.actions, pool.parents, x, view)
             judgement = judged(self.model, state.surrogate, y, repertoire, pool.actions, task, pool.parents,
                                view.warm_up, self.k)
+            judgement = parts.judged(self.parts, state.parts, judgement, view)
         with jax.named_scope("acquire"):
             rows, rollout, discarded = contracts.selection(self.acquisition, self.acquisition.select(
                 jax.random.fold_in(key, 5), state.acquisition, judgement, repertoire, pool.rollout,
@@ -250,7 +253,8 @@ class ModelEmitter(Emitter):
         kept_sq, _ = repertoire_lib.k_nearest(repertoire, judgement.behaviors[rows], 1)
         info = ModelInfo(parts.kept(pool.info, rows, pool_size), judgement.behaviors[rows], jnp.sqrt(kept_sq[:, 0]),
                          from_model, discarded, None if judgement.validity is None else judgement.validity[rows],
-                         {name: parts.kept((pooled[name], predicted[name]), rows, pool_size) for name in pooled})
+                         {name: parts.kept((pooled[name], predicted[name]), rows, pool_size) for name in pooled},
+                         None if pool.parents is None else pool.parents[rows])
         return Proposal(pool.actions[rows], rollout, info, None if pool.parents is None else pool.parents[rows],
                         x[rows, task.action_dim:] if self.keeps_features(task) else None)
 
@@ -304,7 +308,7 @@ def judged(model: Any, surrogate: Any, y: jax.Array, repertoire: Repertoire, act
     parent_novelty = None if parents is None else jnp.where(
         parents >= 0, repertoire.novelty[jnp.maximum(parents, 0)], jnp.nan)
     return acquisition.Judged(behaviors, qualities, spread, jnp.sqrt(nearest_sq[:, 0]), nearest_quality, novelty,
-                              improvement, jnp.sqrt(sq), validity, parent_novelty, y, warm_up)
+                              improvement, jnp.sqrt(sq), validity, parent_novelty, y, warm_up, parents)
 
 
 def _share(rows: jax.Array, wanted: jax.Array, share: jax.Array, warm_up: jax.Array,

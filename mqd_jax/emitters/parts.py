@@ -6,16 +6,19 @@ each stage of a generation, as optax's `chain` runs gradient transformations:
 
     pool        part.pool(key, state, pool, view)             -> (pool, info)  steering replaces rows of the pool
     predict     part.predicted(state, y, candidates, view)    -> (y, info)     anchoring changes the predictions
+    judge       part.judged(state, judged, view)              -> judged        curiosity reweighs the parents
     share       part.share(state) (a `Share`)                 -> float32       the model's share of the rollouts
     update      part.update(state, info, proposal, evaluated) -> state         after the rollouts
     report      part.report(state, info, proposal, evaluated) -> metrics       the metrics it declares
 
-Every stage has a neutral default here, so a part writes only its own. What its pool and predict stages return
+Every stage has a neutral default here, so a part writes only its own (a part that does not subclass `Part` may
+leave out `judged` and `sized`, added in 0.23). What its pool and predict stages return
 as info holds one row per pool candidate (each leaf's leading axis); the emitter keeps the chosen rows and hands
 both back to `update` and `report` as the pair `info` = (pool stage's, predict stage's)
 (`ModelInfo.parts[part.name]`). The chain gates warm-up once: until the emitter's warm-up is over, a part whose
 `learns_in_warm_up` is False keeps its state (its `update` is not used); `report` sees the state the
-generation was chosen with.
+generation was chosen with. A part whose state is sized by the repertoire sets `sized = True` and takes
+`init(key, task, capacity)`, as a sized emitter does.
 
 A part that takes a share of the rows for the model's choice is a `Share` (its `share(state)` a float32 in
 [0, 1]): `Fallback` (adaptive pursuit between the model's choice and the inner emitter's own candidates) and
@@ -86,6 +89,8 @@ class ModelInfo:
       discarded: int32, the candidates the model turned down.
       validity: [num] the validity classifier's probability of a usable rollout, or None without one.
       parts: {part.name: (its pool stage's info, its predict stage's info)}, rows kept.
+      parents: [num] int32 the kept rows' parents' slots (-1: none), or None where the inner emitter names none
+        (a run's `update` is not given `Proposal.parents`: a rule or a part reads them here).
     """
 
     inner: Any
@@ -95,6 +100,7 @@ class ModelInfo:
     discarded: jax.Array
     validity: jax.Array | None = None
     parts: dict[str, Any] = dataclasses.field(default_factory=dict)
+    parents: jax.Array | None = None
 
 
 class Part:
@@ -106,12 +112,14 @@ class Part:
       learns_in_warm_up: its `update` is used during warm-up too (else the chain keeps its state then).
       needs_ranking: why it needs a ranking rule (best rows first), or None where it does not.
       shares: it takes a share of the rows (`Share`).
+      sized: its `init` takes the repertoire's capacity too: `init(key, task, capacity)`.
     """
 
     name: ClassVar[str] = "part"
     learns_in_warm_up: ClassVar[bool] = False
     needs_ranking: ClassVar[str | None] = None
     shares: ClassVar[bool] = False
+    sized: ClassVar[bool] = False
 
     def init(self, key: jax.Array, task: Task) -> Any:
         return ()
@@ -128,6 +136,10 @@ class Part:
 
     def predicted(self, state: Any, y: jax.Array, candidates: Pooled, view: View) -> tuple[jax.Array, Any]:
         return y, ()
+
+    def judged(self, state: Any, judged: Any, view: View) -> Any:
+        """The model's view of the pool (`acquisition.Judged`) as the rule will read it."""
+        return judged
 
     def update(self, state: Any, info: Any, proposal: Proposal, evaluated: Evaluated) -> Any:
         return state
@@ -188,6 +200,20 @@ def check_chain(parts: tuple[Any, ...], ranked: bool, owner: str, metrics: list[
     if clash:
         raise ValueError(f"{owner}: the metrics {sorted(clash)} are declared by more than one of its parts (the "
                          "model, the surrogate, the inner emitter, the chain's parts)")
+
+
+def initial(part: Any, key: jax.Array, task: Task, capacity: int) -> Any:
+    """A part's initial state: `init(key, task, capacity)` for a `sized` part, else `init(key, task)`."""
+    return part.init(key, task, capacity) if getattr(part, "sized", False) else part.init(key, task)
+
+
+def judged(parts: tuple[Any, ...], states: dict[str, Any], judgement: Any, view: View) -> Any:
+    """The model's view of the pool (`acquisition.Judged`) as the chain's judge stages leave it, in order."""
+    for part in parts:
+        stage = getattr(part, "judged", None)
+        if stage is not None:
+            judgement = stage(states[part.name], judgement, view)
+    return judgement
 
 
 def shared(parts: tuple[Any, ...]) -> bool:

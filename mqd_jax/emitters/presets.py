@@ -7,6 +7,7 @@ a gradient transformation).
                                                           -> ModelEmitter(IsoLine(scales=(1, wide_scale)),
                                                                           Diverse(...), Surrogate(features, gate),
                                                                           parts=(Steering(...), Anchoring("auto"),
+                                                                                 [Curiosity(curiosity),]
                                                                                  Fallback()))
     mqd_paper(t_nov=0.04, t_qua=0.0, budgeted=False, ...) -> ModelEmitter(IsoLine(), Threshold(t_nov, t_qua),
                                                                           Surrogate())
@@ -30,11 +31,12 @@ import inspect
 from typing import Any
 
 from mqd_jax.core import algorithms
-from mqd_jax.core.checks import is_int
+from mqd_jax.core.checks import is_int, is_real
 from mqd_jax.core.emitter import Emitter
 from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
 from mqd_jax.emitters.anchoring import Anchoring
 from mqd_jax.emitters.baselines import IsoLine, Uniform
+from mqd_jax.emitters.curiosity import Curiosity
 from mqd_jax.emitters.model_emitter import ModelEmitter
 from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.emitters.steering import Steering
@@ -86,7 +88,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
         line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
         step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096,
-        surrogate: Any = None, rule: Any = None) -> Emitter:
+        curiosity: float = 0.0, surrogate: Any = None, rule: Any = None) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -111,6 +113,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         chance, the generation is the inner emitter's own (plain QD emission).
       training_data, rollout_buffer: the model trains on the "repertoire" (Table II) or on its latest
         `rollout_buffer` usable "rollouts" (`Surrogate.training_data`).
+      curiosity: a `Curiosity` of this weight reweighs each candidate by its parent's record of children that
+        opened niches (0: none; it acts through the parent factor, so parent_weight must be > 0).
       surrogate: a surrogate of one's own (`mqd_jax.surrogate.protocol`) in place of the built-in model, the
         preset's other parts kept (the inner emitter, the rule, fallback, steering, anchoring); None: the
         built-in `Surrogate` of the options above. With one's own, ensemble_size, features, gate, validity,
@@ -123,6 +127,11 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
     """
     _own_part("surrogate", surrogate, locals(), _SURROGATE_OPTIONS)
     _own_part("rule", rule, locals(), _RULE_OPTIONS)
+    if not (is_real(curiosity) and curiosity >= 0):
+        raise ValueError(f"mqd: curiosity={curiosity!r} is invalid: expected a finite float >= 0 (0: none)")
+    if curiosity and rule is None and not parent_weight:
+        raise ValueError(f"mqd: curiosity={curiosity!r} acts through the parent factor, which parent_weight=0 "
+                         "turns off: set parent_weight > 0 or curiosity=0")
     rule = rule if rule is not None else Diverse(pool_factor, optimism, parent_weight=parent_weight,
                                                  quality_share=quality_share)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
@@ -132,7 +141,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         learning_rate=learning_rate, features=features, gate=Gate() if gate else None,
         validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer)
     chain = ((Steering(share=steering_share),) if steering_share else ()) + (
-        Anchoring("auto", anchor), Fallback()) + ((StepAside(),) if step_aside else ())
+        Anchoring("auto", anchor),) + ((Curiosity(curiosity),) if curiosity else ()) + (
+        Fallback(),) + ((StepAside(),) if step_aside else ())
     return ModelEmitter(IsoLine(scales=scales, iso_sigma=iso_sigma, line_sigma=line_sigma), rule, surrogate, k=k,
                         warmup_samples=warmup_samples, parts=chain)
 
@@ -157,7 +167,7 @@ def mqd_paper(k: int = 5, t_nov: float = 0.04, t_qua: float = 0.0, budgeted: boo
 def mqd_local(neighbours: int = 0, ridge: float = 1e-3, buffer: int = 4096, k: int = 5, pool_factor: int = 8,
               optimism: float = 1.0, parent_weight: float = 1.0, quality_share: float = 0.1, wide_scale: float = 2.0,
               steering_share: float = 0.25, anchor: str = "parent", warmup_samples: int = 1000,
-              iso_sigma: float = 0.02, line_sigma: float = 0.1, rule: Any = None) -> Emitter:
+              iso_sigma: float = 0.02, line_sigma: float = 0.1, curiosity: float = 0.0, rule: Any = None) -> Emitter:
     """`mqd` with `LocalLinear(neighbours, ridge, buffer)` as its surrogate (`mqd_jax.surrogate.local`: a fit to
     each candidate's `neighbours` nearest of the latest `buffer` rollouts, 0: 4 (n + 1) for n action dimensions),
     the other options `mqd`'s. Fewer rollouts than the network on several tasks and QD's quality, at more time per
@@ -166,7 +176,7 @@ def mqd_local(neighbours: int = 0, ridge: float = 1e-3, buffer: int = 4096, k: i
         raise ValueError(f"mqd-local: neighbours={neighbours!r} is invalid: expected 0 (4 (n + 1)) or an int >= 2")
     return mqd(k=k, pool_factor=pool_factor, optimism=optimism, parent_weight=parent_weight,
                quality_share=quality_share, wide_scale=wide_scale, steering_share=steering_share, anchor=anchor,
-               warmup_samples=warmup_samples, iso_sigma=iso_sigma, line_sigma=line_sigma,
+               warmup_samples=warmup_samples, iso_sigma=iso_sigma, line_sigma=line_sigma, curiosity=curiosity,
                surrogate=LocalLinear(neighbours or None, ridge, buffer), rule=rule)
 
 
