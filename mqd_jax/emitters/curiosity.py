@@ -84,7 +84,7 @@ class Curiosity(Part):
         return judged.replace(parent_novelty=judged.parent_novelty * factor)
 
     def update(self, state: jax.Array, info: Any, proposal: Proposal, evaluated: Evaluated) -> jax.Array:
-        """The counts after a generation's rollouts (rows not rolled out are not counted)."""
+        """The counts after a generation's rollouts (rows without a parent or not rolled out: column C)."""
         capacity = state.shape[1] - 1
         parents = proposal.info.parents
         if parents is None:
