@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mqd_jax import Config, Curiosity, Diverse, Evaluated, IsoLine, ModelEmitter, Proposal, Surrogate, presets
+from mqd_jax.core.emitter import init_emitter
 from mqd_jax.core.repertoire import AddStatus, Repertoire
 from mqd_jax.emitters import parts
 from mqd_jax.experiment.migrations import upgraded
@@ -82,7 +83,7 @@ def test_the_presets_option_and_bad_settings():
 def test_a_part_without_the_judge_stage_or_a_size_keeps_working():
     """A part that does not subclass `Part` and predates 0.23 has neither `judged` nor `sized`."""
     old = types.SimpleNamespace(name="old", init=lambda key, task: "state of (key, task)")
-    assert parts.initial(old, None, None, 64) == "state of (key, task)"
-    assert parts.initial(Curiosity(), None, None, 3).shape == (2, 4)
+    assert init_emitter(old, None, None, 64) == "state of (key, task)"
+    assert init_emitter(Curiosity(), None, None, 3).shape == (2, 4)
     judgement = object()
     assert parts.judged((old,), {"old": ()}, judgement, None) is judgement

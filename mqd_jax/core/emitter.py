@@ -162,5 +162,6 @@ class Emitter:
 
 
 def init_emitter(emitter: Emitter, key: jax.Array, task: Task, capacity: int) -> Any:
-    """`emitter`'s initial state: `init(key, task, capacity)` for a `sized` emitter, else `init(key, task)`."""
-    return emitter.init(key, task, capacity) if emitter.sized else emitter.init(key, task)
+    """`emitter`'s initial state (or a model emitter's part's, `mqd_jax.emitters.parts`): `init(key, task,
+    capacity)` for a `sized` one, else `init(key, task)` (also for a part written before parts could be sized)."""
+    return emitter.init(key, task, capacity) if getattr(emitter, "sized", False) else emitter.init(key, task)

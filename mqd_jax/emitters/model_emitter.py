@@ -185,7 +185,7 @@ class ModelEmitter(Emitter):
                                  inner=init_emitter(self.inner, jax.random.fold_in(key, 1), task, capacity),
                                  evaluations=jnp.int32(0),
                                  acquisition=acquisition.state_of(self.acquisition, jax.random.fold_in(key, 5), task),
-                                 parts={part.name: parts.initial(part, jax.random.fold_in(key, 6), task, capacity)
+                                 parts={part.name: init_emitter(part, jax.random.fold_in(key, 6), task, capacity)
                                         for part in self.parts})
 
     def view(self, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params | None,

@@ -18,7 +18,7 @@ both back to `update` and `report` as the pair `info` = (pool stage's, predict s
 (`ModelInfo.parts[part.name]`). The chain gates warm-up once: until the emitter's warm-up is over, a part whose
 `learns_in_warm_up` is False keeps its state (its `update` is not used); `report` sees the state the
 generation was chosen with. A part whose state is sized by the repertoire sets `sized = True` and takes
-`init(key, task, capacity)`, as a sized emitter does.
+`init(key, task, capacity)`, as a sized emitter does (`core.emitter.init_emitter` initializes either).
 
 A part that takes a share of the rows for the model's choice is a `Share` (its `share(state)` a float32 in
 [0, 1]): `Fallback` (adaptive pursuit between the model's choice and the inner emitter's own candidates) and
@@ -200,11 +200,6 @@ def check_chain(parts: tuple[Any, ...], ranked: bool, owner: str, metrics: list[
     if clash:
         raise ValueError(f"{owner}: the metrics {sorted(clash)} are declared by more than one of its parts (the "
                          "model, the surrogate, the inner emitter, the chain's parts)")
-
-
-def initial(part: Any, key: jax.Array, task: Task, capacity: int) -> Any:
-    """A part's initial state: `init(key, task, capacity)` for a `sized` part, else `init(key, task)`."""
-    return part.init(key, task, capacity) if getattr(part, "sized", False) else part.init(key, task)
 
 
 def judged(parts: tuple[Any, ...], states: dict[str, Any], judgement: Any, view: View) -> Any:
