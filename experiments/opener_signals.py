@@ -34,8 +34,11 @@ members' spread alone and added to the anchored distance (optimism, as `Diverse`
 "the run's model" rows are its predictions. With `--curiosity W` the run has `Curiosity(W)`
 (`mqd_jax.emitters.curiosity`), and the signals of its record: the factor of each child's parent's record, and
 the anchored distance times the parent's novelty (what `Diverse` ranks by, `parent_weight=1`), with and without
-the factor. And the task's ruggedness: quartiles of the distance between a child's behavior and its first
-parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
+the factor. And what the run's own choices open: of its last 20 generations' rollouts past warm-up, the share
+that opened a niche, by source (`SOURCES`: the rule's choice of the inner emitter's children, of steered children,
+and the fallback's fill, which the model did not rank: the run's own base rate; opened: farther than t_dist from
+every skill its generation began with). And the task's ruggedness: quartiles of the distance between a child's
+behavior and its first parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
 sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 """
 
@@ -59,6 +62,9 @@ from mqd_jax.surrogate import model
 
 POOL, CHOSEN = 800, 100
 HISTORY = 20  # the run's last generations whose rollouts' outcomes its own classifier of openers learns
+# Where a run's own rollouts came from: the rule's choice of the inner emitter's children, of steered children, and the
+# fallback's fill (the inner emitter's first candidates, unranked: the run's own base rate).
+SOURCES = ("the rule's choice, not steered", "the rule's choice, steered", "the fallback's fill (unranked)")
 
 
 def auc(score: np.ndarray, label: np.ndarray) -> float:
@@ -146,14 +152,16 @@ def _classifier(labelled: list[tuple[jax.Array, np.ndarray]], task: Task, key: j
                    jax.random.fold_in(key, 2))
 
 
-def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tuple[jax.Array, np.ndarray]]]:
-    """The run of `cfg` from `seed` (as `run_mqd`'s generations, its last `last` through ask/tell), and what those
+def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tuple[jax.Array, np.ndarray]],
+                                                                  dict[str, list[int]]]:
+    """The run of `cfg` from `seed` (as `run_mqd`'s generations, its last `last` through ask/tell), what those
     last generations' rollouts teach about openers: [(normalized actions [R, n], opened [R])], one per generation,
-    opened = valid and farther than t_dist from every skill of the repertoire its generation began with."""
+    opened = valid and farther than t_dist from every skill of the repertoire its generation began with; and, past
+    warm-up, {source: [rollouts, openers]} of those rollouts by where they came from (`SOURCES`)."""
     task, params = get_task(cfg), cfg.params()
     first = jax.jit(lambda k: run_generations(init(k, cfg), cfg, params, cfg.max_generations - last)[0])
     state = first(jax.random.PRNGKey(seed))
-    history = []
+    history, sources = [], {name: [0, 0] for name in SOURCES}
     for g in range(last):
         candidates = ask(state, cfg)
         key = jax.random.fold_in(jax.random.PRNGKey(10_000 + seed), g)
@@ -163,8 +171,15 @@ def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tupl
         rolled = np.asarray(candidates.rollout)
         opened = np.asarray(valid) & (distance > float(params.t_dist))
         history.append((model.normalize_actions(candidates.actions[rolled], task), opened[rolled]))
+        if int(state.emitter.evaluations) >= cfg.emitter.warmup_samples:  # the model chose this generation's rows
+            info = candidates.info
+            steered = np.asarray(info.parts["steering"][0]) if "steering" in info.parts else np.zeros_like(rolled)
+            chosen = np.asarray(info.from_model)
+            for name, rows in zip(SOURCES, (chosen & ~steered, chosen & steered, ~chosen), strict=True):
+                sources[name][0] += int((rows & rolled).sum())
+                sources[name][1] += int((rows & rolled & opened).sum())
         state, _ = tell(state, candidates, *outcome, cfg, auxiliary=auxiliary if task.auxiliary else None)
-    return state, history
+    return state, history, sources
 
 
 def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1, surrogate: str = "network",
@@ -176,7 +191,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
         {"curiosity": float(curiosity)} if curiosity else {})
     cfg = Config.paper(task_name, algorithm="mqd-local" if surrogate == "local" else "mqd",
                        max_generations=generations, algorithm_options=options)
-    state, history = _run_with_history(cfg, seed, HISTORY)
+    state, history, sources = _run_with_history(cfg, seed, HISTORY)
     task, emitter, params, rep = get_task(cfg), cfg.emitter, cfg.params(), state.repertoire
     n, filled = int(rep.count), min(int(state.archive.total), state.archive.qualities.shape[0])
     skills = np.asarray(rep.behaviors[:n])
@@ -249,7 +264,9 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
             _rated(_rank(score) * _rank(novelty), opener))
     quantiles = np.quantile(np.concatenate(distances), [0.25, 0.5, 0.75])
     return out, {"base rate": float(np.mean(openers)), **{f"q{q}": v for q, v in zip((25, 50, 75), quantiles,
-                                                                                         strict=True)}, "skills": n}
+                                                                                         strict=True)}, "skills": n,
+                 **{f"{name}: {what}": float(count) for name, counts in sources.items()
+                    for what, count in zip(("rollouts", "openers"), counts, strict=True)}}
 
 
 def main() -> None:
@@ -281,6 +298,12 @@ def main() -> None:
             values = np.array([v for s in per_seed for v in s[0][name]], float)
             mse = "" if np.isnan(values[:, 2]).all() else f"{np.nanmean(values[:, 2]):.5f}"
             lines.append(f"| {name} | {np.nanmean(values[:, 0]):.3f} | {values[:, 1].mean():.3f} | {mse} |")
+        lines.append("")
+        lines += [f"The run's own rollouts of its last {HISTORY} generations past warm-up, by source (all seeds):", "",
+                  "| source | rollouts | share that opened a niche |", "|---|---|---|"]
+        for name in SOURCES:
+            rolled, opened = stats[f"{name}: rollouts"], stats[f"{name}: openers"]
+            lines.append(f"| {name} | {rolled * args.seeds:.0f} | {opened / rolled if rolled else float('nan'):.3f} |")
         lines.append("")
         print(f"{task_name}: done", flush=True)
     report.write(lines, args.out)

@@ -27,7 +27,9 @@ For each task and composition, from the mean over seeds of coverage [G] and roll
 The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
 of the model's predictions: the ceiling of what a better model could buy. "local" is the preset "mqd-local",
 `"mqd"` with the surrogate `LocalLinear` (`mqd_jax.surrogate.local`) in place of the network
-("local:neighbours=32,buffer=2048": its options).
+("local:neighbours=32,buffer=2048": its options). "steer" is `"mqd"` whose `Steering` sets the share of its rows it
+steers by adaptive pursuit (`Steering(share, pursuit=Fallback())`: more where steered rollouts open more niches than
+the rest; "steer:steering_share=0.5": up to 45% of the pool, from 25%).
 
 `--tasks arm`, `rugged_arm` and `rastrigin` are tasks none of this was tuned on (`extra_tasks.py`).
 
@@ -57,6 +59,7 @@ from mqd_jax.core import algorithms, registry
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task
+from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.experiment import results, stats
 from mqd_jax.experiment.progress import Progress
 from mqd_jax.experiment.sweep import run_batch, seed_keys
@@ -80,7 +83,7 @@ class Oracle(Surrogate):
 # The compositions the report's tables still show: the presets and the oracle. The compositions that stood for
 # earlier versions of "mqd" and the ablations measured on the way (docs/results.md's history) are in the git
 # history: commit 7e79d7f holds this script with all of them.
-COMPOSITIONS = ("qd", "mqd-paper", "mqd", "random", "oracle", "local")
+COMPOSITIONS = ("qd", "mqd-paper", "mqd", "random", "oracle", "local", "steer")
 FRACTIONS = (0.25, 0.5, 1.0)
 
 
@@ -97,7 +100,7 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
     name, _, changes = spec.partition(":")
     if name not in COMPOSITIONS:
         raise SystemExit(f"{spec!r}: {name!r} is not a composition ({', '.join(COMPOSITIONS)})")
-    preset = {"oracle": "mqd", "local": "mqd-local"}.get(name, name)
+    preset = {"oracle": "mqd", "local": "mqd-local", "steer": "mqd"}.get(name, name)
     options = {}
     for change in filter(None, changes.split(",")):
         option, equals, text = change.partition("=")
@@ -116,6 +119,11 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
             oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1),
                                          parts=tuple(p for p in cfg.emitter.parts if p.name != "fallback"))
             cfg = dataclasses.replace(cfg, algorithm=oracle, algorithm_options={})
+        if name == "steer":  # the share of the steering rows steered, by adaptive pursuit
+            chain = tuple(dataclasses.replace(p, pursuit=Fallback()) if p.name == "steering" else p
+                          for p in cfg.emitter.parts)
+            cfg = dataclasses.replace(cfg, algorithm=dataclasses.replace(cfg.emitter, parts=chain),
+                                      algorithm_options={})
     except ValueError as error:
         raise SystemExit(f"{spec!r}: {error}") from None
     return cfg
