@@ -302,8 +302,8 @@ def main() -> None:
         lines += [f"The run's own rollouts of its last {HISTORY} generations past warm-up, by source (all seeds):", "",
                   "| source | rollouts | share that opened a niche |", "|---|---|---|"]
         for name in SOURCES:
-            rolled, opened = stats[f"{name}: rollouts"], stats[f"{name}: openers"]
-            lines.append(f"| {name} | {rolled * args.seeds:.0f} | {opened / rolled if rolled else float('nan'):.3f} |")
+            rolled, opened = (sum(s[1][f"{name}: {what}"] for s in per_seed) for what in ("rollouts", "openers"))
+            lines.append(f"| {name} | {rolled:.0f} | {opened / rolled if rolled else float('nan'):.3f} |")
         lines.append("")
         print(f"{task_name}: done", flush=True)
     report.write(lines, args.out)

@@ -65,15 +65,13 @@ class Curiosity(Part):
 
     def factor(self, state: jax.Array, parents: jax.Array, repertoire: Repertoire) -> jax.Array:
         """[N] the record's factor of candidates whose parents' slots are `parents` [N] (-1: none, factor 1)."""
-        tried, opened = state[0, :-1], state[1, :-1]
-        rate = (opened.sum() + 0.5) / (tried.sum() + 1.0)
+        records = state[:, :-1]  # [2, C]: tried, opened
+        rate = (records[1].sum() + 0.5) / (records[0].sum() + 1.0)
         at = jnp.maximum(parents, 0)
-        t, o = tried[at], opened[at]
+        t, o = records[:, at]
         if self.near:
             listed = repertoire.neighbours.index[at]
-            ok = listed >= 0
-            t = t + jnp.where(ok, tried[jnp.maximum(listed, 0)], 0.0).sum(axis=1)
-            o = o + jnp.where(ok, opened[jnp.maximum(listed, 0)], 0.0).sum(axis=1)
+            t, o = records[:, at] + jnp.where(listed >= 0, records[:, jnp.maximum(listed, 0)], 0.0).sum(axis=2)
         factor = ((o / rate + self.prior) / (t + self.prior)) ** self.weight
         return jnp.where(parents >= 0, factor, 1.0)
 

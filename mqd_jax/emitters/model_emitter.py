@@ -210,8 +210,15 @@ class ModelEmitter(Emitter):
         """The model's view of actions [N, n] (their parents' slots [N], or None) against the repertoire."""
         view = self.view(state, repertoire, task, None, actions.shape[0])
         y, _ = self.predicted(state, actions, parents, self.model.inputs(actions, task), view)
-        return parts.judged(self.parts, state.parts, judged(self.model, state.surrogate, y, repertoire, actions, task,
-                                                            parents, view.warm_up, self.k), view)
+        return self._judgement(state, y, actions, parents, view)
+
+    def _judgement(self, state: ModelEmitterState, y: jax.Array, actions: jax.Array, parents: jax.Array | None,
+                   view: View) -> acquisition.Judged:
+        """The rule's view of candidates [N, n] from their predictions y [E, N, d + 1] against the view's repertoire,
+        as the chain's judge stages leave it."""
+        judgement = judged(self.model, state.surrogate, y, view.repertoire, actions, view.task, parents, view.warm_up,
+                           self.k)
+        return parts.judged(self.parts, state.parts, judgement, view)
 
     def propose(self, key: jax.Array, state: ModelEmitterState, repertoire: Repertoire, task: Task, params: Params,
                 num: int) -> Proposal:
@@ -230,9 +237,7 @@ class ModelEmitter(Emitter):
         with jax.named_scope("predict"):
             x = self.model.inputs(pool.actions, task)  # the pool's features computed here, once
             y, predicted = self.predicted(state, pool.actions, pool.parents, x, view)
-            judgement = judged(self.model, state.surrogate, y, repertoire, pool.actions, task, pool.parents,
-                               view.warm_up, self.k)
-            judgement = parts.judged(self.parts, state.parts, judgement, view)
+            judgement = self._judgement(state, y, pool.actions, pool.parents, view)
         with jax.named_scope("acquire"):
             rows, rollout, discarded = contracts.selection(self.acquisition, self.acquisition.select(
                 jax.random.fold_in(key, 5), state.acquisition, judgement, repertoire, pool.rollout,
