@@ -34,12 +34,17 @@ members' spread alone and added to the anchored distance (optimism, as `Diverse`
 "the run's model" rows are its predictions. With `--curiosity W` the run has `Curiosity(W)`
 (`mqd_jax.emitters.curiosity`), and the signals of its record: the factor of each child's parent's record, and
 the anchored distance times the parent's novelty (what `Diverse` ranks by, `parent_weight=1`), with and without
-the factor. And what the run's own choices open: of its last 20 generations' rollouts past warm-up, the share
-that opened a niche, by source (`SOURCES`: the rule's choice of the inner emitter's children, of steered children,
-and the fallback's fill, which the model did not rank: the run's own base rate; opened: farther than t_dist from
-every skill its generation began with). And the task's ruggedness: quartiles of the distance between a child's
-behavior and its first parent's. Every child is rolled out: quick on the 2D tasks and the planar arm of
-sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
+the factor. Two rankings that use only what a run could know (0.23.2): P(open), the share of 32 points (the child's
+anchored prediction plus a residual drawn from the other pools' held-out anchored errors) that lie farther than
+t_dist from every skill, the model's error taken as it is rather than as zero; and a logistic regression, fitted on
+the other pools, of "opened" on six of the child's signals (its anchored nearest distance, novelty-5 and count
+within 0.1, its parent's novelty, its step from the parent and its predicted behavior's distance from the parent's):
+whether the weak signals combine. And what the run's own choices open: of its last 20 generations' rollouts past
+warm-up, the share that opened a niche, by source (`SOURCES`: the rule's choice of the inner emitter's children, of
+steered children, and the fallback's fill, which the model did not rank: the run's own base rate; opened: farther
+than t_dist from every skill its generation began with). And the task's ruggedness: quartiles of the distance
+between a child's behavior and its first parent's. Every child is rolled out: quick on the 2D tasks and the planar
+arm of sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 """
 
 from __future__ import annotations
@@ -62,6 +67,7 @@ from mqd_jax.surrogate import model
 
 POOL, CHOSEN = 800, 100
 HISTORY = 20  # the run's last generations whose rollouts' outcomes its own classifier of openers learns
+DRAWS = 32  # points per child of P(open): its anchored prediction plus as many held-out residuals
 # Where a run's own rollouts came from: the rule's choice of the inner emitter's children, of steered children, and the
 # fallback's fill (the inner emitter's first candidates, unranked: the run's own base rate).
 SOURCES = ("the rule's choice, not steered", "the rule's choice, steered", "the fallback's fill (unranked)")
@@ -139,6 +145,40 @@ def _nearest_skill(rep: Any, behaviors: jax.Array) -> np.ndarray:
     return np.sqrt(np.asarray(repertoire_lib.k_nearest(rep, behaviors, 1)[0][:, 0]))
 
 
+def _p_open(predicted: np.ndarray, residuals: np.ndarray, rep: Any, t_dist: float, task: Task,
+            rng: np.random.Generator) -> np.ndarray:
+    """P(open) of predictions [N, d] under held-out errors residuals [R, d]: the share of `DRAWS` points, each the
+    prediction plus a residual drawn uniformly, clipped to the behavior box, farther than t_dist from every skill."""
+    draws = predicted[:, None] + residuals[rng.integers(0, len(residuals), (len(predicted), DRAWS))]
+    points = np.clip(draws, task.behavior_low, task.behavior_high).reshape(-1, predicted.shape[1])
+    return (_nearest_skill(rep, jnp.asarray(points, jnp.float32)).reshape(len(predicted), DRAWS) > t_dist).mean(1)
+
+
+def _candidate_features(scored: dict[str, np.ndarray], step: np.ndarray, displacement: np.ndarray,
+                        t_dist: float) -> np.ndarray:
+    """[N, 6] what the rule can know of each child: the anchored prediction's distance to the nearest skill and its
+    novelty-5 (logs, in t_dist), minus its count within 0.1, the parent's novelty (log), the child's step from its
+    parent (log, normalized action units) and its predicted behavior's from the parent's (log, in t_dist)."""
+    log = lambda x: np.log(np.maximum(x, 1e-6))  # noqa: E731
+    return np.stack([log(scored["run's model, anchored, nearest"] / t_dist),
+                     log(scored["run's model, anchored, novelty-5"] / t_dist),
+                     scored["run's model, anchored, -count(0.1)"] / 10.0, log(scored["parent's novelty"] / t_dist),
+                     log(step), log(displacement / t_dist)], axis=1)
+
+
+def _logistic(x: np.ndarray, label: np.ndarray, ridge: float = 1e-2, steps: int = 50) -> Any:
+    """A logistic regression of label [R] on standardized x [R, f] (Newton steps, ridge on the weights): the
+    function of x [N, f] that gives the log-odds."""
+    mean, std = x.mean(0), x.std(0) + 1e-9
+    design = lambda x: np.c_[(x - mean) / std, np.ones(len(x))]  # noqa: E731
+    z, w = design(x), np.zeros(x.shape[1] + 1)
+    for _ in range(steps):
+        p = 1.0 / (1.0 + np.exp(-z @ w))
+        hessian = (z * (p * (1 - p))[:, None]).T @ z + ridge * np.eye(len(w))
+        w -= np.linalg.solve(hessian, z.T @ (p - label) + ridge * w)
+    return lambda x: design(x) @ w
+
+
 def _rank(score: np.ndarray) -> np.ndarray:
     """Each score's rank in (0, 1], the highest 1."""
     return (np.argsort(np.argsort(score, kind="stable"), kind="stable") + 1) / len(score)
@@ -206,6 +246,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
               for h in (32, 256)}
     out: dict[str, list] = {}
     distances, openers, labelled, ranked, relative, parents_of = [], [], [], [], [], []
+    residuals, described = [], []  # per pool: (anchored predictions, behaviors, valid); (features, openers)
     for p in range(pools):
         k = jax.random.fold_in(key, p)
         pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params.part(params.emitter.inner), POOL)
@@ -240,6 +281,12 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
             scored["anchored nearest x parent's novelty (Diverse's rank)"] = ranks
             scored["anchored nearest x parent's novelty x record (with Curiosity)"] = ranks * record
         scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
+        guess = np.asarray(anchored.mean(0)[:, :-1])
+        residuals.append((guess, np.asarray(behaviors), ok))
+        step = np.linalg.norm(np.asarray(model.normalize_actions(pool.actions, task)
+                                         - model.normalize_actions(rep.actions[parents], task)), axis=1)
+        displacement = np.linalg.norm(guess - np.asarray(rep.behaviors)[parents], axis=1)
+        described.append((_candidate_features(scored, step, displacement, float(params.t_dist)), opener))
         labelled.append((model.normalize_actions(pool.actions, task), opener))
         relative.append(_relative_data(pool.actions, behaviors, valid, rep, parents, task))
         ranked.append(scored["run's model, anchored, novelty-5"])
@@ -254,6 +301,15 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
         predicted = np.asarray(rep.behaviors)[parents_of[p]] + np.asarray(model.apply_members(delta, inputs))[0] * scale
         for name, score in _scores(predicted, skills).items():
             out.setdefault(f"relative to the parent (other pools), {name}", []).append(_rated(score, labelled[p][1]))
+    rng = np.random.default_rng(seed)
+    for p, (guess, _, _) in enumerate(residuals if pools > 1 else []):
+        errors = np.concatenate([(b - g)[ok] for q, (g, b, ok) in enumerate(residuals) if q != p])
+        out.setdefault("run's model, anchored, P(open) under the other pools' residuals", []).append(
+            _rated(_p_open(guess, errors, rep, float(params.t_dist), task, rng), labelled[p][1]))
+        others = [d for q, d in enumerate(described) if q != p]
+        odds = _logistic(np.concatenate([x for x, _ in others]), np.concatenate([o for _, o in others]))
+        out.setdefault("logistic regression on the child's six signals (other pools)", []).append(
+            _rated(odds(described[p][0]), labelled[p][1]))
     own = _classifier(history, task, key)  # what the run itself has seen open niches, its last generations
     for p, (inputs, opener) in enumerate(labelled):
         score = np.asarray(model.apply_members(own, inputs))[0, :, 0]
