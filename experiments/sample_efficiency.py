@@ -24,9 +24,10 @@ For each task and composition, from the mean over seeds of coverage [G] and roll
   * mean quality and QD-score of the repertoire after QD's rollouts;
   * ms per generation (the batch's wall time after compiling, per generation) and its ratio to QD's
     in the same invocation (not with --sweep: its runs were timed in other processes).
-The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead
-of the model's predictions: the ceiling of what a better model could buy. "local" is the preset "mqd-local",
-`"mqd"` with the surrogate `LocalLinear` (`mqd_jax.surrogate.local`) in place of the network
+The oracle ("oracle", 2D tasks only) is `mqd`'s acquisition fed the task's true outcomes instead of the model's
+predictions: the ceiling of what a better model could buy ("oracle:noise=0.05": its behaviors off by a Gaussian
+error of 0.05 per axis, a fixed function of the action: what a model of that error would buy). "local" is the preset
+"mqd-local", `"mqd"` with the surrogate `LocalLinear` (`mqd_jax.surrogate.local`) in place of the network
 ("local:neighbours=32,buffer=2048": its options). "steer" is `"mqd"` whose `Steering` sets the share of its rows it
 steers by adaptive pursuit (`Steering(share, pursuit=Fallback())`: more where steered rollouts open more niches than
 the rest; "steer:steering_share=0.5": up to 45% of the pool, from 25%).
@@ -71,11 +72,21 @@ class Oracle(Surrogate):
     """A surrogate whose "members" are the task's true outcomes (one member; NaN where invalid).
 
     For deterministic tasks with cheap rollouts only: it rolls out its whole pool inside the
-    generation to judge it, so it is a reference, not a method."""
+    generation to judge it, so it is a reference, not a method. With `noise` > 0 each behavior it gives is off by
+    a Gaussian error of that standard deviation per axis (behavior units), a fixed function of the action (the same
+    action, the same error): a model that errs by that much, how many rollouts it would need."""
+
+    noise: float = 0.0
 
     def members(self, state: SurrogateState, actions: jax.Array, task: Task,
                 inputs: jax.Array | None = None) -> jax.Array:
         behaviors, qualities, valid = task.evaluate(actions, jax.random.PRNGKey(0))
+        if self.noise:
+            bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(actions).astype(jnp.float32), jnp.uint32)
+            odd = jnp.arange(actions.shape[1], dtype=jnp.uint32) * 2 + 1
+            seeds = (bits * odd * jnp.uint32(2654435761)).sum(axis=1)  # a hash of the action's bits
+            error = jax.vmap(lambda s: jax.random.normal(jax.random.PRNGKey(s), (behaviors.shape[1],)))(seeds)
+            behaviors = behaviors + self.noise * error
         outcome = jnp.concatenate([behaviors, qualities[:, None]], axis=-1).astype(jnp.float32)
         return jnp.where(valid[:, None], outcome, jnp.nan)[None]
 
@@ -112,11 +123,12 @@ def configured(spec: str, task: str, generations: int | None = None) -> Config:
             options[option] = text
     fields = {f.name for f in dataclasses.fields(Config)} - {"algorithm", "algorithm_options", "task"}
     changed = {field: options.pop(field) for field in fields & set(options)}
+    noise = options.pop("noise", 0.0) if name == "oracle" else 0.0
     length = {} if generations is None else {"max_generations": generations}
     try:
         cfg = Config.paper(task, algorithm=preset, algorithm_options=options, **{**length, **changed})
         if name == "oracle":  # the preset's acquisition fed the true outcomes
-            oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1),
+            oracle = dataclasses.replace(cfg.emitter, surrogate=Oracle(num_batches=1, noise=float(noise)),
                                          parts=tuple(p for p in cfg.emitter.parts if p.name != "fallback"))
             cfg = dataclasses.replace(cfg, algorithm=oracle, algorithm_options={})
         if name == "steer":  # the share of the steering rows steered, by adaptive pursuit
