@@ -246,7 +246,7 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
               for h in (32, 256)}
     out: dict[str, list] = {}
     distances, openers, labelled, ranked, relative, parents_of = [], [], [], [], [], []
-    residuals, described = [], []  # per pool: (anchored predictions, behaviors, valid); (features, openers)
+    residuals, described = [], []  # per pool: (anchored predictions, behaviors, valid); `_candidate_features`
     for p in range(pools):
         k = jax.random.fold_in(key, p)
         pool = emitter.inner.propose(k, state.emitter.inner, rep, task, params.part(params.emitter.inner), POOL)
@@ -283,11 +283,11 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
         scored["oracle (true distance)"] = np.where(np.asarray(valid), true_d, -np.inf)
         guess = np.asarray(anchored.mean(0)[:, :-1])
         residuals.append((guess, np.asarray(behaviors), ok))
-        step = np.linalg.norm(np.asarray(model.normalize_actions(pool.actions, task)
-                                         - model.normalize_actions(rep.actions[parents], task)), axis=1)
+        child = model.normalize_actions(pool.actions, task)
+        step = np.linalg.norm(np.asarray(child - model.normalize_actions(rep.actions[parents], task)), axis=1)
         displacement = np.linalg.norm(guess - np.asarray(rep.behaviors)[parents], axis=1)
-        described.append((_candidate_features(scored, step, displacement, float(params.t_dist)), opener))
-        labelled.append((model.normalize_actions(pool.actions, task), opener))
+        described.append(_candidate_features(scored, step, displacement, float(params.t_dist)))
+        labelled.append((child, opener))
         relative.append(_relative_data(pool.actions, behaviors, valid, rep, parents, task))
         ranked.append(scored["run's model, anchored, novelty-5"])
         for name, score in scored.items():
@@ -306,10 +306,10 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
         errors = np.concatenate([(b - g)[ok] for q, (g, b, ok) in enumerate(residuals) if q != p])
         out.setdefault("run's model, anchored, P(open) under the other pools' residuals", []).append(
             _rated(_p_open(guess, errors, rep, float(params.t_dist), task, rng), labelled[p][1]))
-        others = [d for q, d in enumerate(described) if q != p]
-        odds = _logistic(np.concatenate([x for x, _ in others]), np.concatenate([o for _, o in others]))
+        odds = _logistic(np.concatenate(described[:p] + described[p + 1:]),
+                         np.concatenate([o for q, (_, o) in enumerate(labelled) if q != p]))
         out.setdefault("logistic regression on the child's six signals (other pools)", []).append(
-            _rated(odds(described[p][0]), labelled[p][1]))
+            _rated(odds(described[p]), labelled[p][1]))
     own = _classifier(history, task, key)  # what the run itself has seen open niches, its last generations
     for p, (inputs, opener) in enumerate(labelled):
         score = np.asarray(model.apply_members(own, inputs))[0, :, 0]
