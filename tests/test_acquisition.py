@@ -141,6 +141,24 @@ def test_greedy_diverse_by_parent_novelty_by_hand():
     np.testing.assert_allclose(parent_factor(pool.replace(parent_novelty=jnp.zeros(2)), 1.0), [1.0, 1.0])
 
 
+def test_diverse_cap_by_hand():
+    """Two predicted openers, 0 at 10 t_dist from the skill with a parent a third as novel as 1's, 1 at 2 t_dist, and
+    a non-opener with the most novel parent. Uncapped 0 goes first (0.5 x 0.214 > 0.1 x 0.643); with the distance
+    counted up to 1 or 3 t_dist, 1 (its parent's novelty decides, or its distance under the cap); a cap beyond both
+    distances changes nothing; the non-opener stays last. The rounds choose as the greedy steps."""
+    rep = repertoire_of([[0.0, 0.0]], [0.5])
+    pool = judged([[0.5, 0.0], [0.0, 0.1], [0.04, 0.0]], [0.5] * 3, rep).replace(
+        parent_novelty=jnp.array([0.1, 0.3, 1.0]))
+    wanted, t = jnp.ones(3, bool), jnp.float32(0.05)
+    for cap, order in ((0.0, [0, 1, 2]), (1.0, [1, 0, 2]), (3.0, [1, 0, 2]), (20.0, [0, 1, 2])):
+        greedy = greedy_diverse(pool, wanted, t, 0.0, 3, parent_weight=1.0, cap=cap)
+        np.testing.assert_array_equal(greedy, order)
+        np.testing.assert_array_equal(rounds_diverse(pool, wanted, t, 0.0, 3, 4, parent_weight=1.0, cap=cap), order)
+    rows, _, _ = Diverse(1, 0.0, parent_weight=1.0, cap=1.0).select(jax.random.PRNGKey(0), (), pool, rep, wanted,
+                                                                    Config().params().replace(t_dist=t), 3)
+    np.testing.assert_array_equal(rows, [1, 0, 2])
+
+
 def test_greedy_diverse_by_novelty_by_hand():
     """Candidate 0 is a little farther from its nearest skill, candidate 1 in emptier surroundings: 0 goes first
     ranked by the nearest distance, 1 ranked by the mean distance to the 2 nearest."""
@@ -442,7 +460,8 @@ def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qual
                                        (dict(quality_share=float("nan")), "quality_share"),
                                        (dict(quality_margin=-0.1), "quality_margin"),
                                        (dict(quality_margin=float("inf")), "quality_margin"),
-                                       (dict(selection="fast"), "selection"), (dict(rounds=0), "rounds")])
+                                       (dict(selection="fast"), "selection"), (dict(rounds=0), "rounds"),
+                                       (dict(cap=-1.0), "cap")])
 def test_diverse_is_validated(kw, field):
     with pytest.raises(ValueError, match=f"Diverse.{field}="):
         Diverse(**kw)
@@ -562,7 +581,7 @@ def flat(cfg):
     saved = cfg.to_dict()
     options = saved.pop("algorithm_options")
     later = ("features", "gate", "validity", "step_aside", "training_data", "rollout_buffer",  # options of 0.11, 0.16
-             "surrogate", "rule", "curiosity")  # and the parts of 0.18, the option of 0.23
+             "surrogate", "rule", "curiosity", "opener_cap")  # and the parts of 0.18, the options of 0.23, 0.23.3
     return {k: v for k, v in {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
                               "adaptation_step_size": 0.1, "adaptation_steps": 10}.items() if k not in later}
 

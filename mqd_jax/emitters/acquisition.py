@@ -286,17 +286,19 @@ def _diverse_terms(judged: Judged, beta: float, neighbours: int, parent_weight: 
 
 def _tiers(near: jax.Array, nearest_quality: jax.Array, free: jax.Array, preferred_is_improver: jax.Array | bool,
            q: jax.Array, finite: jax.Array, optimism: jax.Array, factor: jax.Array | float, wanted: jax.Array,
-           plausible: jax.Array, t_dist: jax.Array, quality_margin: jax.Array | float
+           plausible: jax.Array, t_dist: jax.Array, quality_margin: jax.Array | float, cap: float = 0.0
            ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(tier [N] (-1 for a candidate taken), value [N], opens [N]) of a diverse selection's step: first the wanted,
     then the preferred (openers, or on a quality step the improvers), then the plausible; within a tier by value
-    (an opener's optimistic mean distance to its nearest imagined skills times the parent factor, else the
-    predicted improvement over its nearest)."""
+    (an opener's optimistic mean distance to its nearest imagined skills, at most `cap` x t_dist where `cap` > 0,
+    times the parent factor, else the predicted improvement over its nearest)."""
     opens = finite & (near[:, 0] + optimism > t_dist)
     improves = finite & ~opens & (q - nearest_quality > quality_margin)
     known = jnp.isfinite(near)
     count = known.sum(axis=1)
     mean = jnp.where(count > 0, jnp.where(known, near, 0.0).sum(axis=1) / jnp.maximum(count, 1), jnp.inf)
+    if cap:  # a predicted opener's distance counts up to cap x t_dist: farther predictions err the most
+        mean = jnp.minimum(mean, cap * t_dist)
     preferred = jnp.where(preferred_is_improver, improves, opens)
     value = jnp.where(finite, jnp.nan_to_num(jnp.where(opens, (mean + optimism) * factor, q - nearest_quality)),
                       -jnp.inf)
@@ -307,7 +309,7 @@ def _tiers(near: jax.Array, nearest_quality: jax.Array, free: jax.Array, preferr
 
 def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int,
                    neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0,
-                   quality_margin: float | jax.Array = 0.0) -> jax.Array:
+                   quality_margin: float | jax.Array = 0.0, cap: float = 0.0) -> jax.Array:
     """[num] pool rows chosen one at a time against an imagined repertoire; the first chosen first.
 
     Each step takes, among the candidates not yet chosen, first those the
@@ -317,7 +319,8 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     by the largest optimistic mean distance to the `neighbours` nearest such
     behaviors (1: the distance to the nearest; more: a novelty, which looks past
     the nearest one to how crowded the predicted behavior's surroundings are,
-    needing `judged.neighbours` of at least that many columns, else ValueError); then the rest by
+    needing `judged.neighbours` of at least that many columns, else ValueError;
+    counted up to `cap` x t_dist where `cap` > 0); then the rest by
     the largest predicted quality improvement over that nearest behavior. In
     each of these tiers the candidates judged likely usable (`Judged.plausible`)
     come first. NaN predictions come last.
@@ -339,7 +342,7 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         near, nearest_quality, free = carry
         # A quality step prefers the improvers (by their improvement, as non-openers are ranked anyway).
         tier, value, _ = _tiers(near, nearest_quality, free, quality_step, q, finite, optimism, factor, wanted,
-                                plausible, t_dist, quality_margin)
+                                plausible, t_dist, quality_margin, cap)
         best = tier == tier.max()
         pick = jnp.argmax(jnp.where(best, value, -jnp.inf))
         pick = jnp.where(best[pick], pick, jnp.argmax(best)).astype(jnp.int32)  # all of the tier at -inf: the first
@@ -362,7 +365,7 @@ def greedy_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
 
 def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: float, num: int, rounds: int,
                    neighbours: int = 1, parent_weight: float = 0.0, quality_share: float = 0.0,
-                   quality_margin: float | jax.Array = 0.0) -> jax.Array:
+                   quality_margin: float | jax.Array = 0.0, cap: float = 0.0) -> jax.Array:
     """[num] pool rows chosen in at most `rounds` data-parallel rounds (non-maximum suppression; they stop once the
     budget is full or a round takes none), then filled by score; the
     first chosen first. `greedy_diverse`'s choice made parallel in the pool: its order, tiers and values, not its
@@ -399,7 +402,7 @@ def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
     def one_round(carry: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
         round_, _, near, nearest_quality, free, position, taken_in, taken_tier, taken_value = carry
         tier, value, _ = _tiers(near, nearest_quality, free, False, q, finite, optimism, factor, wanted,
-                                plausible, t_dist, quality_margin)
+                                plausible, t_dist, quality_margin, cap)
         mine = jnp.arange(size)[:, None]
         beaten = conflict & free[others] & before(tier[others], value[others], others, tier[:, None],
                                                   value[:, None], mine)
@@ -435,13 +438,13 @@ def rounds_diverse(judged: Judged, wanted: jax.Array, t_dist: jax.Array, beta: f
         more, one_round, start)
     # The openers' rows: by round taken, each round best first; then the best of the rest by a last ranking.
     tier, value, _ = _tiers(near, nearest_quality, free, False, q, finite, optimism, factor, wanted, plausible,
-                            t_dist, quality_margin)
+                            t_dist, quality_margin, cap)
     chosen = jnp.lexsort((-jnp.where(free, value, taken_value), -jnp.where(free, tier, taken_tier), taken_in))
     rows = chosen[:openers]
     if quality_count:
         left = jnp.ones(size, bool).at[rows].set(False)
         tier, value, _ = _tiers(near, nearest_quality, left, True, q, finite, optimism, factor, wanted,
-                                plausible, t_dist, quality_margin)
+                                plausible, t_dist, quality_margin, cap)
         extra = jnp.lexsort((-value, -tier))[:quality_count]
         steps = np.arange(num)
         is_quality = (steps + 1) * quality_count // num > steps * quality_count // num
@@ -458,10 +461,10 @@ class Diverse:
     nearest imagined or real skills: 1, the nearest; at most `ModelEmitter.k`; times the parent's relative
     novelty to the power `parent_weight`: 0, not read; a `quality_share` of the steps prefer predicted quality
     improvements of held niches larger than `quality_margin` x the standard deviation of the repertoire's
-    qualities). `selection`: "greedy" (one at a time, `greedy_diverse`: the oracle of what diverse means),
-    "rounds" (`rounds_diverse`: `rounds` data-parallel rounds, then filled by score), or "auto": rounds where
-    `num` >= `ROUNDS_FROM` (where they are faster), else greedy (so smaller runs repeat earlier versions' bit for
-    bit)."""
+    qualities; an opener's distance counted up to `cap` x t_dist, 0: no cap). `selection`: "greedy" (one at a
+    time, `greedy_diverse`: the oracle of what diverse means), "rounds" (`rounds_diverse`: `rounds` data-parallel
+    rounds, then filled by score), or "auto": rounds where `num` >= `ROUNDS_FROM` (where they are faster), else
+    greedy (so smaller runs repeat earlier versions' bit for bit)."""
 
     pool_factor: int = 8
     beta: float = 1.0
@@ -471,10 +474,11 @@ class Diverse:
     quality_margin: float = 0.0
     selection: str = "auto"
     rounds: int = 16
+    cap: float = 0.0
 
     def __post_init__(self) -> None:
         _check_pool_factor(self)
-        for name in ("beta", "parent_weight", "quality_margin"):
+        for name in ("beta", "parent_weight", "quality_margin", "cap"):
             value = getattr(self, name)
             if not (is_real(value) and value >= 0):
                 raise ValueError(f"Diverse.{name}={value!r} is invalid: expected a finite float >= 0")
@@ -499,10 +503,10 @@ class Diverse:
             margin = self.quality_margin * jnp.std(repertoire.qualities, where=repertoire.valid)
         if self.selection == "rounds" or (self.selection == "auto" and num >= ROUNDS_FROM):
             top = rounds_diverse(judged, wanted, params.t_dist, self.beta, num, self.rounds, self.neighbours,
-                                 self.parent_weight, self.quality_share, jnp.nan_to_num(margin))
+                                 self.parent_weight, self.quality_share, jnp.nan_to_num(margin), self.cap)
         else:
             top = greedy_diverse(judged, wanted, params.t_dist, self.beta, num, self.neighbours, self.parent_weight,
-                                 self.quality_share, jnp.nan_to_num(margin))
+                                 self.quality_share, jnp.nan_to_num(margin), self.cap)
         return ranked_result(top, wanted)
 
 

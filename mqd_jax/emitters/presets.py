@@ -57,7 +57,7 @@ TABLE_II = {
 # The options of the built-in model and of `Diverse` that a preset does not read where one's own part replaces them
 # (Table II's settings among them are left alone: a config passes those for every run).
 _SURROGATE_OPTIONS = ("ensemble_size", "features", "gate", "validity", "training_data", "rollout_buffer")
-_RULE_OPTIONS = ("pool_factor", "optimism", "parent_weight", "quality_share")
+_RULE_OPTIONS = ("pool_factor", "optimism", "parent_weight", "quality_share", "opener_cap")
 
 
 def _own_part(name: str, part: Any, given: dict[str, Any], options: tuple[str, ...]) -> None:
@@ -83,9 +83,9 @@ def qd(iso_sigma: float = 0.02, line_sigma: float = 0.1) -> Emitter:
 
 
 def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: float = 1.0,
-        quality_share: float = 0.1, wide_scale: float = 2.0, steering_share: float = 0.25, anchor: str = "parent",
-        ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16, num_batches: int = 500,
-        warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
+        quality_share: float = 0.1, opener_cap: float = 0.0, wide_scale: float = 2.0, steering_share: float = 0.25,
+        anchor: str = "parent", ensemble_size: int = 1, hidden_size: int = 32, batch_size: int = 16,
+        num_batches: int = 500, warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
         line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
         step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096,
         curiosity: float = 0.0, surrogate: Any = None, rule: Any = None) -> Emitter:
@@ -97,6 +97,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
       optimism: the weight of the ensemble's spread in the optimistic distance (`Diverse.beta`).
       parent_weight: the exponent of a predicted opener's parent's relative novelty in its rank.
       quality_share: the share of the choices that go first to predicted quality gains in held niches.
+      opener_cap: a predicted opener's distance counts in its rank up to this multiple of t_dist (`Diverse.cap`;
+        0: no cap). The model errs most on the candidates it predicts farthest (docs/results.md).
       wide_scale: half the pool's children vary at this multiple of both iso+line steps (1: one scale).
       steering_share: the share of the pool aimed by the model's Jacobian (`Steering`; 0: none).
       anchor: where predictions are anchored: the candidate's "parent" or the "nearest" skill.
@@ -122,8 +124,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         read); Table II's hidden_size, batch_size, num_batches and learning_rate, which a config passes for every
         run, are not read.
       rule: an acquisition rule of one's own (`acquisition.Acquisition`) in place of `Diverse`, the other parts
-        kept; None: `Diverse` of the options above (pool_factor, optimism, parent_weight, quality_share: not
-        read with one's own, ValueError where given). Fallback and steering need a ranking rule.
+        kept; None: `Diverse` of the options above (pool_factor, optimism, parent_weight, quality_share, opener_cap:
+        not read with one's own, ValueError where given). Fallback and steering need a ranking rule.
     """
     _own_part("surrogate", surrogate, locals(), _SURROGATE_OPTIONS)
     _own_part("rule", rule, locals(), _RULE_OPTIONS)
@@ -133,7 +135,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         raise ValueError(f"mqd: curiosity={curiosity!r} acts through the parent factor, which parent_weight=0 "
                          "turns off: set parent_weight > 0 or curiosity=0")
     rule = rule if rule is not None else Diverse(pool_factor, optimism, parent_weight=parent_weight,
-                                                 quality_share=quality_share)
+                                                 quality_share=quality_share, cap=opener_cap)
     # One scale, not (1, 1): IsoLine's parts draw from keys of their own, and 1 repeats version 0.8's runs.
     scales = (1.0,) if wide_scale == 1 else (1.0, wide_scale)
     surrogate = surrogate if surrogate is not None else Surrogate(

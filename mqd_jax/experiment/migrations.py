@@ -83,7 +83,7 @@ def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
     validity classifier nor a step aside, and trained on the repertoire; a config without `coverage_samples`
     (before version 0.12, when every behavior space had two dimensions and a coverage grid) takes today's
     default, which a grid does not read; "mqd" and "mqd-local" without `curiosity` (before version 0.23) had no
-    `Curiosity` (its default, 0)."""
+    `Curiosity` (its default, 0); "mqd" without `opener_cap` (before version 0.23.3) no cap (its default, 0)."""
     options = dict(saved.get("algorithm_options", {}))
     if saved.get("algorithm") == "mqd" and "features" not in options:
         options.update(features=False, gate=False)
@@ -91,6 +91,8 @@ def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
         options.update(validity=False, step_aside=False, training_data="repertoire", rollout_buffer=4096)
     if saved.get("algorithm") in ("mqd", "mqd-local") and "curiosity" not in options:
         options.update(curiosity=0.0)
+    if saved.get("algorithm") == "mqd" and "opener_cap" not in options:
+        options.update(opener_cap=0.0)
     return {"coverage_samples": Config.coverage_samples, **saved, "algorithm_options": options}
 
 
