@@ -1,8 +1,8 @@
 """How a child's step size bears on the niches it opens and on the model's ranking, and where the model's first
 choices err.
 
-    python experiments/step_scales.py [--tasks obstacle2d object2d] [--generations 30] [--seeds 4] [--pools 2]
-        [--out docs/data/step_scales_30.md]
+    python experiments/step_scales.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 4] [--pools 2]
+        [--out docs/data/step_scales_100.md]
 
 For each task and seed: a run of the "mqd" preset for `--generations` generations (as `opener_signals.py`'s), then
 per step scale s in `SCALES` `--pools` pools of 800 IsoLine children of its repertoire with both iso+line steps
@@ -104,7 +104,7 @@ def measure(task_name: str, generations: int, seed: int, pools: int) -> tuple[di
 
 
 def main() -> None:
-    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 4, "docs/data/step_scales_30.md", pools=2)
+    args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 4, "docs/data/step_scales_100.md", pools=2)
     register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/step_scales.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds} --pools {args.pools} --out {args.out}`", "",

@@ -144,17 +144,15 @@ def test_greedy_diverse_by_parent_novelty_by_hand():
 def test_diverse_cap_by_hand():
     """Two predicted openers, 0 at 10 t_dist from the skill with a parent a third as novel as 1's, 1 at 2 t_dist, and
     a non-opener with the most novel parent. Uncapped 0 goes first (0.5 x 0.214 > 0.1 x 0.643); with the distance
-    counted up to 1 or 3 t_dist, 1 (its parent's novelty decides, or its distance under the cap); a cap beyond both
-    distances changes nothing; the non-opener stays last. The rounds choose as the greedy steps."""
+    counted up to 1 t_dist, 1 (its parent's novelty decides; in rounds); up to 3 t_dist, 1 too (its distance under the
+    cap: 0.1 x 0.643 > 0.15 x 0.214; `Diverse`, greedy); the non-opener stays last."""
     rep = repertoire_of([[0.0, 0.0]], [0.5])
     pool = judged([[0.5, 0.0], [0.0, 0.1], [0.04, 0.0]], [0.5] * 3, rep).replace(
         parent_novelty=jnp.array([0.1, 0.3, 1.0]))
     wanted, t = jnp.ones(3, bool), jnp.float32(0.05)
-    for cap, order in ((0.0, [0, 1, 2]), (1.0, [1, 0, 2]), (3.0, [1, 0, 2]), (20.0, [0, 1, 2])):
-        greedy = greedy_diverse(pool, wanted, t, 0.0, 3, parent_weight=1.0, cap=cap)
-        np.testing.assert_array_equal(greedy, order)
-        np.testing.assert_array_equal(rounds_diverse(pool, wanted, t, 0.0, 3, 4, parent_weight=1.0, cap=cap), order)
-    rows, _, _ = Diverse(1, 0.0, parent_weight=1.0, cap=1.0).select(jax.random.PRNGKey(0), (), pool, rep, wanted,
+    np.testing.assert_array_equal(greedy_diverse(pool, wanted, t, 0.0, 3, parent_weight=1.0), [0, 1, 2])
+    np.testing.assert_array_equal(rounds_diverse(pool, wanted, t, 0.0, 3, 4, parent_weight=1.0, cap=1.0), [1, 0, 2])
+    rows, _, _ = Diverse(1, 0.0, parent_weight=1.0, cap=3.0).select(jax.random.PRNGKey(0), (), pool, rep, wanted,
                                                                     Config().params().replace(t_dist=t), 3)
     np.testing.assert_array_equal(rows, [1, 0, 2])
 
@@ -536,6 +534,7 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     assert changed(steering_share=0.0).part("steering") is None  # version 0.4's "mqd"
     assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
     assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
+    assert changed(opener_cap=2.0).acquisition == Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1, cap=2.0)
     assert not changed(features=False).surrogate.features and changed(gate=False).surrogate.gate is None  # 0.10's
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
