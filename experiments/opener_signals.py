@@ -98,10 +98,19 @@ def _fresh(data: repertoire_lib.Repertoire | Archive, hidden: int, task: Task, k
                                          4096 if features else None))(state)[0]
 
 
+def top_rows(score: np.ndarray) -> np.ndarray:
+    """The rows of the `CHOSEN` best scores [N], best first (ties: the first in the pool)."""
+    return np.argsort(-score, kind="stable")[:CHOSEN]
+
+
+def precision(score: np.ndarray, opener: np.ndarray) -> float:
+    """Precision@100: the share of openers [N] among the `CHOSEN` best-scored rows."""
+    return float(opener[top_rows(score)].mean())
+
+
 def _rated(score: np.ndarray, opener: np.ndarray, error: float = float("nan")) -> tuple[float, float, float]:
     """(AUC, precision@100, held-out behavior error) of scores [N] against the openers [N]."""
-    top = np.argsort(-score, kind="stable")[:CHOSEN]
-    return auc(score, opener), float(opener[top].mean()), error
+    return auc(score, opener), precision(score, opener), error
 
 
 def _predictions(emitter: Any, state: Any, pool: Any, rep: Any, task: Task) -> tuple[jax.Array, jax.Array]:

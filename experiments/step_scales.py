@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import report
 from extra_tasks import register_experiment_tasks
-from opener_signals import CHOSEN, POOL, _nearest_skill, _predictions
+from opener_signals import POOL, _nearest_skill, _predictions, precision, top_rows
 
 from mqd_jax import Config
 from mqd_jax.core.run import get_task, init, run_generations
@@ -42,11 +42,6 @@ SCALE_COLUMNS = ("base rate", "true displacement", "predicted displacement", "co
 ERROR_COLUMNS = ("error q25", "error median", "error q75", "error p90", "top 100: error median",
                  "top 100: predicted nearest", "top 100: true nearest", "openers: predicted nearest",
                  "openers: true nearest", "precision: min(nearest, t_dist) x parent's novelty")
-
-
-def _precision(score: np.ndarray, opener: np.ndarray) -> float:
-    """The share of openers among the `CHOSEN` best-scored children (ties: the first in the pool)."""
-    return float(opener[np.argsort(-score, kind="stable")[:CHOSEN]].mean())
 
 
 def _pool(state: Any, cfg: Config, scale: float, key: jax.Array) -> dict[str, np.ndarray]:
@@ -72,19 +67,19 @@ def _by_scale(p: dict[str, np.ndarray]) -> list[float]:
     cosine = (true_step * guessed_step).sum(1) / np.maximum(true_norm * guessed_norm, 1e-12)
     oracle = np.where(ok, p["true nearest"], -np.inf)
     return [opener.mean(), np.median(true_norm[ok]), np.median(guessed_norm[ok]), np.median(cosine[ok]),
-            _precision(p["predicted nearest"], opener), _precision(p["predicted nearest"] * p["novelty"], opener),
-            _precision(oracle, opener)]
+            precision(p["predicted nearest"], opener), precision(p["predicted nearest"] * p["novelty"], opener),
+            precision(oracle, opener)]
 
 
 def _errors(p: dict[str, np.ndarray], t_dist: float) -> list[float]:
     """`ERROR_COLUMNS` of one rolled-out pool (`_pool`): errors and nearest distances in t_dist."""
     ok, opener, guessed = p["valid"], p["opener"], p["predicted nearest"]
     error = np.linalg.norm(p["predicted"] - p["behaviors"], axis=1) / t_dist
-    top = np.argsort(-guessed, kind="stable")[:CHOSEN]
+    top = top_rows(guessed)
     capped = np.minimum(guessed, t_dist) * p["novelty"]
     return [*np.quantile(error[ok], [0.25, 0.5, 0.75, 0.9]), np.median(error[top]), np.median(guessed[top]) / t_dist,
             np.median(p["true nearest"][top]) / t_dist, np.median(guessed[opener]) / t_dist if opener.any() else np.nan,
-            np.median(p["true nearest"][opener]) / t_dist if opener.any() else np.nan, _precision(capped, opener)]
+            np.median(p["true nearest"][opener]) / t_dist if opener.any() else np.nan, precision(capped, opener)]
 
 
 def measure(task_name: str, generations: int, seed: int, pools: int) -> tuple[dict[float, list], list, float]:
