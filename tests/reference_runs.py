@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import platform
 import sys
 
 # The tests' XLA flags (conftest.py): the saved arrays are what the tests compute.
@@ -31,7 +30,7 @@ import numpy as np
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core import registry
-from mqd_jax.experiment.provenance import provenance
+from mqd_jax.experiment.provenance import cpu_model, provenance
 
 PATH = pathlib.Path(__file__).resolve().parent / "data" / "reference_runs.npz"
 # The saved runs, of the CPUs they were made on.
@@ -50,22 +49,6 @@ def config(task: str, algorithm: str) -> Config:
                "mqd-paper": dict(warmup_samples=8, num_batches=2, t_nov=0.0, t_qua=0.0)}.get(algorithm, {})
     return Config(task=made, algorithm=algorithm, max_generations=3, population_size=8, capacity=64,
                   archive_capacity=32, algorithm_options=options)
-
-
-def cpu_model() -> str:
-    """The CPU's model name, whether it has AVX-512 and whether that has VP2INTERSECT, or without AVX-512 whether it
-    has VAES (MuJoCo's physics and M-QD's model may round otherwise on another one: one name, "AMD EPYC", covers
-    processors of several generations)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            lines = f.read().splitlines()
-        name = next(line.split(":", 1)[1].strip() for line in lines if line.startswith("model name"))
-        flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
-        if "avx512f" not in flags:
-            return name + (" with VAES" if "vaes" in flags else "")
-        return name + " with AVX-512" + (" and VP2INTERSECT" if "avx512_vp2intersect" in flags else "")
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine()
 
 
 def arrays(task: str, algorithm: str) -> dict[str, np.ndarray]:

@@ -20,7 +20,7 @@ from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import diagnostics, registry
 from mqd_jax.core.config import check_params
 from mqd_jax.core.run import init
-from mqd_jax.experiment import checkpoint, cli, folders, results
+from mqd_jax.experiment import checkpoint, cli, folders, provenance, results
 from mqd_jax.experiment.sweep import grid, param_names, run_batch, seed_keys
 
 
@@ -71,6 +71,24 @@ def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny
     manifest = json.loads((tmp_path / folders.MANIFEST).read_text())
     assert manifest["kind"] == "run" and manifest["identity"] == {"config": cfg, "seed": 7}
 
+
+
+def test_the_machine_names_its_cpu_and_what_makes_it_round_otherwise(tmp_path, monkeypatch):
+    def cpu(flags, name="model name\t: AMD EPYC"):
+        path = tmp_path / "cpuinfo"
+        path.write_text(f"processor\t: 0\n{name}\nflags\t\t: fpu sse2 {flags}\n\nprocessor\t: 1\n")
+        return provenance.cpu_model(str(path))
+
+    assert cpu("avx2 vaes avx512f avx512_vp2intersect") == "AMD EPYC with AVX-512 and VP2INTERSECT"
+    assert cpu("avx2 avx512f avx512_bf16") == "AMD EPYC with AVX-512"
+    assert cpu("avx2 vaes") == "AMD EPYC with VAES"
+    assert cpu("avx2") == "AMD EPYC"
+    monkeypatch.setattr(provenance.platform, "processor", lambda: "")
+    assert cpu("avx512f", name="") == provenance.platform.machine()  # no model name: the architecture
+    assert provenance.cpu_model(str(tmp_path / "absent")) == provenance.platform.machine()
+    monkeypatch.setattr(provenance, "cpu_model", lambda: "Some CPU with AVX-512")
+    assert provenance.machine().startswith(f"{provenance.platform.machine()} (Some CPU with AVX-512), "
+                                           f"{os.cpu_count()} CPU cores, jax {jax.__version__}")
 
 def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silently(tmp_path, capsys, refused,
                                                                                  tiny_flags):

@@ -22,9 +22,30 @@ PACKAGES = ("mqd-jax", "jax", "jaxlib", "flax", "optax", "chex", "numpy", "mujoc
 
 
 def machine() -> str:
-    """The machine figures were measured on, e.g. 'x86_64, 2 CPU cores, jax 0.10.2 on cpu (cpu) x 1'."""
-    return (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()} "
+    """The machine figures were measured on, e.g. 'x86_64 (AMD EPYC with AVX-512 and VP2INTERSECT), 2 CPU cores,
+    jax 0.10.2 on cpu (cpu) x 1': its CPU named (`cpu_model`), since one model name covers processors whose
+    timing ratios differ by half (docs/results.md, "Time per generation")."""
+    cpu = cpu_model()
+    arch = platform.machine() if cpu == platform.machine() else f"{platform.machine()} ({cpu})"
+    return (f"{arch}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()} "
             f"({jax.devices()[0].device_kind}) x {jax.device_count()}")
+
+
+def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
+    """The CPU's model name, whether it has AVX-512 and whether that has VP2INTERSECT, or without AVX-512 whether it
+    has VAES (MuJoCo's physics and M-QD's model may round otherwise on another one: one name, "AMD EPYC", covers
+    processors of several generations); where `cpuinfo` cannot be read or names no model, the platform's processor
+    or architecture."""
+    try:
+        with open(cpuinfo) as f:
+            lines = f.read().splitlines()
+        name = next(line.split(":", 1)[1].strip() for line in lines if line.startswith("model name"))
+        flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
+        if "avx512f" not in flags:
+            return name + (" with VAES" if "vaes" in flags else "")
+        return name + " with AVX-512" + (" and VP2INTERSECT" if "avx512_vp2intersect" in flags else "")
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
 
 
 def _version(package: str) -> str | None:
