@@ -72,7 +72,6 @@ def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny
     assert manifest["kind"] == "run" and manifest["identity"] == {"config": cfg, "seed": 7}
 
 
-
 def test_the_machine_names_its_cpu_and_what_makes_it_round_otherwise(tmp_path, monkeypatch):
     def cpu(flags, name="model name\t: AMD EPYC"):
         path = tmp_path / "cpuinfo"

@@ -24,7 +24,7 @@ PACKAGES = ("mqd-jax", "jax", "jaxlib", "flax", "optax", "chex", "numpy", "mujoc
 def machine() -> str:
     """The machine figures were measured on, e.g. 'x86_64 (AMD EPYC with AVX-512 and VP2INTERSECT), 2 CPU cores,
     jax 0.10.2 on cpu (cpu) x 1': its CPU named (`cpu_model`), since one model name covers processors whose
-    timing ratios differ by half (docs/results.md, "Time per generation")."""
+    timing ratios differ by half (docs/results.md, "A generation parallel in its population")."""
     cpu = cpu_model()
     arch = platform.machine() if cpu == platform.machine() else f"{platform.machine()} ({cpu})"
     return (f"{arch}, {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()} "
