@@ -535,6 +535,7 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
     assert changed(quality_share=0.0).acquisition == Diverse(3, 0.5, parent_weight=1.0)  # 0.7's
     assert changed(parent_weight=0.0, quality_share=0.0).acquisition == Diverse(3, 0.5)  # 0.6's
     assert changed(opener_cap=2.0).acquisition == Diverse(3, 0.5, parent_weight=1.0, quality_share=0.1, cap=2.0)
+    assert changed(novelty_sampling=2.0).surrogate == dataclasses.replace(cfg.emitter.surrogate, novelty_sampling=2.0)
     assert not changed(features=False).surrogate.features and changed(gate=False).surrogate.gate is None  # 0.10's
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     pop = cfg.population_size
@@ -573,6 +574,11 @@ def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_on
     assert int(state.surrogate.model.steps) == 6
     with pytest.raises(ValueError, match=r"Surrogate\.training_data="):
         Surrogate(training_data="archive")
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match=r"Surrogate\.novelty_sampling=.* expected a finite float >= 0"):
+            Surrogate(novelty_sampling=bad)
+    with pytest.raises(ValueError, match="which training_data='rollouts' does not have"):
+        Surrogate(novelty_sampling=2.0, training_data="rollouts")
 
 
 def flat(cfg):
@@ -580,7 +586,8 @@ def flat(cfg):
     saved = cfg.to_dict()
     options = saved.pop("algorithm_options")
     later = ("features", "gate", "validity", "step_aside", "training_data", "rollout_buffer",  # options of 0.11, 0.16
-             "surrogate", "rule", "curiosity", "opener_cap")  # and the parts of 0.18, the options of 0.23, 0.23.3
+             "surrogate", "rule", "curiosity", "opener_cap",  # and the parts of 0.18, the options of 0.23, 0.23.3
+             "novelty_sampling")  # and 0.23.4
     return {k: v for k, v in {**saved, **algorithms.options("mqd"), **algorithms.options("mqd-paper"), **options,
                               "adaptation_step_size": 0.1, "adaptation_steps": 10}.items() if k not in later}
 

@@ -9,6 +9,7 @@ import pytest
 from envs.obstacle2d import Obstacle2D
 from mqd_jax import Config, init, run_mqd
 from mqd_jax.core import registry
+from mqd_jax.core.archive import Archive
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.run import generation
 from mqd_jax.emitters import acquisition
@@ -221,3 +222,40 @@ def test_a_generation_computes_the_tasks_features_of_its_pool_only(algorithm, op
     calls.clear()
     jax.make_jaxpr(lambda s: generation(s, cfg, cfg.params()))(state)
     assert len(calls) == traced, calls
+
+
+def test_by_novelty_draws_valid_skills_in_proportion_to_novelty_to_the_power():
+    rep = Repertoire.empty(8, 1, 2, 4).replace(novelty=jnp.array([0.0, 1.0, 2.0, 3.0, 9.0, 9.0, 9.0, 9.0]),
+                                               count=jnp.int32(4))  # slots 4-7 hold no skill
+    keys = jax.random.split(jax.random.PRNGKey(0), 500)
+
+    def shares(r, power):
+        drawn = np.asarray(jax.vmap(lambda k: model.by_novelty(k, r, power))(keys)).ravel()
+        return np.bincount(drawn, minlength=8) / drawn.size
+
+    np.testing.assert_allclose(shares(rep, 2.0), [0, 1 / 14, 4 / 14, 9 / 14, 0, 0, 0, 0], atol=0.02)
+    np.testing.assert_allclose(shares(rep, 1.0), [0, 1 / 6, 2 / 6, 3 / 6, 0, 0, 0, 0], atol=0.02)
+    # Where every weight underflows (no skill has a neighbour), uniformly over the skills.
+    lonely = rep.replace(novelty=jnp.zeros(8))
+    np.testing.assert_allclose(shares(lonely, 20.0), [0.25] * 4 + [0] * 4, atol=0.03)
+
+
+def test_novelty_sampling_weighs_the_fit_by_novelty_to_the_power(linear_task):
+    """Two skills at the same action with other behaviors: the model learns their mean, weighted by novelty ** p."""
+    capacity, action = 256, jnp.zeros((1, 3))
+    b = jnp.zeros((capacity, 2)).at[0].set(0.6).at[1].set(0.2)
+    rep = Repertoire.empty(capacity, 3, 2, 4).replace(
+        behaviors=b, qualities=jnp.full(capacity, 0.5), novelty=jnp.zeros(capacity).at[0].set(1.0).at[1].set(0.5),
+        valid=jnp.arange(capacity) < 2, count=jnp.int32(2))
+    ms = model.init(jax.random.PRNGKey(0), 8, linear_task)
+
+    def fitted(power):
+        trained, _ = model.train(ms, jax.random.PRNGKey(1), rep, linear_task, jnp.float32(1e-2), 16, 400,
+                                 novelty_power=power)
+        return np.asarray(model.predict(trained, action, linear_task)[0])[0]
+
+    np.testing.assert_allclose(fitted(0.0), 0.4, atol=0.03)  # uniform: (0.6 + 0.2) / 2
+    np.testing.assert_allclose(fitted(2.0), (0.6 + 0.25 * 0.2) / 1.25, atol=0.03)  # weights 1 and 0.5 ** 2
+    with pytest.raises(ValueError, match="novelty_power=1.0 draws by the skills' novelty"):
+        model.train(ms, jax.random.PRNGKey(1), Archive.empty(8, 3, 2), linear_task, jnp.float32(1e-2), 16, 1,
+                    novelty_power=1.0)

@@ -56,7 +56,8 @@ TABLE_II = {
 
 # The options of the built-in model and of `Diverse` that a preset does not read where one's own part replaces them
 # (Table II's settings among them are left alone: a config passes those for every run).
-_SURROGATE_OPTIONS = ("ensemble_size", "features", "gate", "validity", "training_data", "rollout_buffer")
+_SURROGATE_OPTIONS = ("ensemble_size", "features", "gate", "validity", "training_data", "rollout_buffer",
+                      "novelty_sampling")
 _RULE_OPTIONS = ("pool_factor", "optimism", "parent_weight", "quality_share", "opener_cap")
 
 
@@ -88,7 +89,7 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         num_batches: int = 500, warmup_samples: int = 1000, learning_rate: float = 1e-3, iso_sigma: float = 0.02,
         line_sigma: float = 0.1, features: bool = True, gate: bool = True, validity: bool = False,
         step_aside: bool = False, training_data: str = "repertoire", rollout_buffer: int = 4096,
-        curiosity: float = 0.0, surrogate: Any = None, rule: Any = None) -> Emitter:
+        curiosity: float = 0.0, novelty_sampling: float = 0.0, surrogate: Any = None, rule: Any = None) -> Emitter:
     """This library's M-QD: the model ranks `pool_factor` x the population and the rule rolls out a diverse set.
 
     Args:
@@ -117,10 +118,12 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
         `rollout_buffer` usable "rollouts" (`Surrogate.training_data`).
       curiosity: a `Curiosity` of this weight reweighs each candidate by its parent's record of children that
         opened niches (0: none; it acts through the parent factor, so parent_weight must be > 0).
+      novelty_sampling: the model's mini-batches draw skills in proportion to novelty to this power
+        (`Surrogate.novelty_sampling`; 0: uniformly), where the candidates' parents come from.
       surrogate: a surrogate of one's own (`mqd_jax.surrogate.protocol`) in place of the built-in model, the
         preset's other parts kept (the inner emitter, the rule, fallback, steering, anchoring); None: the
         built-in `Surrogate` of the options above. With one's own, ensemble_size, features, gate, validity,
-        training_data and rollout_buffer given other than their defaults are a ValueError (they would not be
+        training_data, rollout_buffer and novelty_sampling given other than their defaults are a ValueError (they would not be
         read); Table II's hidden_size, batch_size, num_batches and learning_rate, which a config passes for every
         run, are not read.
       rule: an acquisition rule of one's own (`acquisition.Acquisition`) in place of `Diverse`, the other parts
@@ -141,7 +144,8 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
     surrogate = surrogate if surrogate is not None else Surrogate(
         hidden_size=hidden_size, ensemble_size=ensemble_size, batch_size=batch_size, num_batches=num_batches,
         learning_rate=learning_rate, features=features, gate=Gate() if gate else None,
-        validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer)
+        validity=Validity() if validity else None, training_data=training_data, rollout_buffer=rollout_buffer,
+        novelty_sampling=novelty_sampling)
     chain = ((Steering(share=steering_share),) if steering_share else ()) + (
         Anchoring("auto", anchor),) + ((Curiosity(curiosity),) if curiosity else ()) + (
         Fallback(),) + ((StepAside(),) if step_aside else ())

@@ -83,7 +83,8 @@ def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
     validity classifier nor a step aside, and trained on the repertoire; a config without `coverage_samples`
     (before version 0.12, when every behavior space had two dimensions and a coverage grid) takes today's
     default, which a grid does not read; "mqd" and "mqd-local" without `curiosity` (before version 0.23) had no
-    `Curiosity` (its default, 0); "mqd" without `opener_cap` (before version 0.23.3) no cap (its default, 0)."""
+    `Curiosity` (its default, 0); "mqd" without `opener_cap` (before version 0.23.3) no cap (its default, 0);
+    without `novelty_sampling` (before version 0.23.4) uniform mini-batches (its default, 0)."""
     options = dict(saved.get("algorithm_options", {}))
     if saved.get("algorithm") == "mqd" and "features" not in options:
         options.update(features=False, gate=False)
@@ -93,6 +94,8 @@ def _since_0_10(saved: dict[str, Any]) -> dict[str, Any]:
         options.update(curiosity=0.0)
     if saved.get("algorithm") == "mqd" and "opener_cap" not in options:
         options.update(opener_cap=0.0)
+    if saved.get("algorithm") == "mqd" and "novelty_sampling" not in options:
+        options.update(novelty_sampling=0.0)
     return {"coverage_samples": Config.coverage_samples, **saved, "algorithm_options": options}
 
 

@@ -180,7 +180,7 @@ def predict(model: ModelState, actions: jax.Array, task: Task,
 
 def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: Task, learning_rate: jax.Array,
           batch_size: int, num_batches: int, feature_rows: int | None = None,
-          features: jax.Array | None = None) -> tuple[ModelState, jax.Array]:
+          features: jax.Array | None = None, novelty_power: float = 0.0) -> tuple[ModelState, jax.Array]:
     """`num_batches` Adam steps at `learning_rate`, each member on its own mini-batches of `batch_size` rows.
 
     `data` is a repertoire (its valid rows are the prefix [0, count)) or a
@@ -189,11 +189,21 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     features of `feature_rows` rows drawn uniformly (with replacement) from the
     data, on which the steps then draw their mini-batches (features can cost a
     forward-kinematics pass per row: read from `features`, the data's rows'
-    features where known, else computed for those rows). Returns the new state
-    and the mean loss over the steps and members.
+    features where known, else computed for those rows). With `novelty_power`
+    p > 0 (a repertoire only) the steps draw from a resample of it (`by_novelty`)
+    in place of the repertoire itself. Returns the new state and the mean loss
+    over the steps and members.
     """
     filled = data.count if isinstance(data, Repertoire) else jnp.minimum(data.total, data.qualities.shape[0])
     actions, targets = data.actions, normalize_targets(data.behaviors, data.qualities, task)
+    if novelty_power:
+        if not isinstance(data, Repertoire):
+            raise ValueError(f"model.train: novelty_power={novelty_power!r} draws by the skills' novelty, which a "
+                             "rollout buffer does not have: train on a repertoire or set novelty_power=0")
+        key, drawn = jax.random.split(key)
+        rows = by_novelty(drawn, data, novelty_power)
+        actions, targets, filled = actions[rows], targets[rows], jnp.int32(rows.shape[0])
+        features = None if features is None else features[rows]
     if feature_rows is None:
         return fit(model, key, normalize_actions(actions, task), targets, filled, learning_rate, batch_size,
                    num_batches)
@@ -202,6 +212,19 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     x = inputs(actions[rows], task, True) if features is None else inputs_with(actions[rows], features[rows], task)
     return fit(model, key, x, targets[rows], jnp.int32(feature_rows), learning_rate, batch_size, num_batches)
 
+
+
+def by_novelty(key: jax.Array, rep: Repertoire, power: float) -> jax.Array:
+    """[C] slots of a resample of the repertoire's skills, with replacement, each drawn with probability
+    proportional to (novelty + 1e-6) ** power (a skill without neighbours can still be drawn): the training rows
+    of `train(novelty_power=power)`, which then weigh skills by their novelty as the parents are drawn
+    (`selection`), more steeply for power > 1. Where every weight underflows to 0, uniformly over the skills."""
+    capacity = rep.actions.shape[0]
+    valid = jnp.arange(capacity) < rep.count
+    weights = jnp.where(valid, (rep.novelty + 1e-6) ** float(power), 0.0)
+    total = weights.sum()
+    p = jnp.where(total > 0, weights / total, valid / jnp.maximum(rep.count, 1))
+    return jax.random.choice(key, capacity, (capacity,), p=p)
 
 def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,
         learning_rate: jax.Array, batch_size: int, num_batches: int) -> tuple[ModelState, jax.Array]:

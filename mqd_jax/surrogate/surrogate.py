@@ -78,6 +78,9 @@ class Surrogate:
       feature_rows: with `features`, the training rows per generation whose features are computed (drawn
         from the training data; the mini-batches are drawn from them).
       gate: a `Gate` that moves candidates it says do not act to the null outcome, or None.
+      novelty_sampling: with the "repertoire" as training data, the mini-batches draw skills in proportion to
+        (novelty + 1e-6) ** novelty_sampling (`model.by_novelty`), as the parents of the candidates are drawn in
+        proportion to novelty; 0: uniformly (Table II's reading of "mini-batches from the repertoire").
     """
 
     hidden_size: int = 32
@@ -91,6 +94,7 @@ class Surrogate:
     features: bool = False
     feature_rows: int = 1024
     gate: Gate | None = None
+    novelty_sampling: float = 0.0
 
     def __post_init__(self) -> None:
         for name, lowest in (("hidden_size", 1), ("ensemble_size", 1), ("batch_size", 1), ("num_batches", 1),
@@ -109,6 +113,13 @@ class Surrogate:
             raise ValueError(f"Surrogate.validity={self.validity!r} is invalid: expected None or a Validity")
         if self.gate is not None and not isinstance(self.gate, Gate):
             raise ValueError(f"Surrogate.gate={self.gate!r} is invalid: expected None or a Gate")
+        if not (is_real(self.novelty_sampling) and self.novelty_sampling >= 0):
+            raise ValueError(f"Surrogate.novelty_sampling={self.novelty_sampling!r} is invalid: expected a finite "
+                             "float >= 0 (0: uniform mini-batches)")
+        if self.novelty_sampling and self.training_data != "repertoire":
+            raise ValueError(f"Surrogate.novelty_sampling={self.novelty_sampling!r} draws skills by their novelty, "
+                             f"which training_data={self.training_data!r} does not have: set novelty_sampling=0 or "
+                             "training_data='repertoire'")
 
     def check_task(self, task: Task) -> None:
         """Raises ValueError unless the task gives what the surrogate needs (a gate's auxiliary output)."""
@@ -204,7 +215,7 @@ class Surrogate:
             has_data, lambda: model.train(state.model, key, data, task, params.learning_rate, self.batch_size,
                                           self.num_batches, self.feature_rows if self.featured(task) else None,
                                           self._kept(repertoire, task)
-                                          if self.training_data == "repertoire" else None),
+                                          if self.training_data == "repertoire" else None, self.novelty_sampling),
             lambda: (state.model, jnp.float32(jnp.nan)))
         return state.replace(model=trained), loss
 
