@@ -256,6 +256,6 @@ def test_novelty_sampling_weighs_the_fit_by_novelty_to_the_power(linear_task):
 
     np.testing.assert_allclose(fitted(0.0), 0.4, atol=0.03)  # uniform: (0.6 + 0.2) / 2
     np.testing.assert_allclose(fitted(2.0), (0.6 + 0.25 * 0.2) / 1.25, atol=0.03)  # weights 1 and 0.5 ** 2
-    with pytest.raises(ValueError, match="novelty_power=1.0 draws by the skills' novelty"):
+    with pytest.raises(ValueError, match=r"novelty_power=1\.0 draws by the skills' novelty"):
         model.train(ms, jax.random.PRNGKey(1), Archive.empty(8, 3, 2), linear_task, jnp.float32(1e-2), 16, 1,
                     novelty_power=1.0)

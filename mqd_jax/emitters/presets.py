@@ -123,9 +123,9 @@ def mqd(k: int = 5, pool_factor: int = 8, optimism: float = 1.0, parent_weight: 
       surrogate: a surrogate of one's own (`mqd_jax.surrogate.protocol`) in place of the built-in model, the
         preset's other parts kept (the inner emitter, the rule, fallback, steering, anchoring); None: the
         built-in `Surrogate` of the options above. With one's own, ensemble_size, features, gate, validity,
-        training_data, rollout_buffer and novelty_sampling given other than their defaults are a ValueError (they would not be
-        read); Table II's hidden_size, batch_size, num_batches and learning_rate, which a config passes for every
-        run, are not read.
+        training_data, rollout_buffer and novelty_sampling given other than their defaults are a ValueError (they
+        would not be read); Table II's hidden_size, batch_size, num_batches and learning_rate, which a config passes
+        for every run, are not read.
       rule: an acquisition rule of one's own (`acquisition.Acquisition`) in place of `Diverse`, the other parts
         kept; None: `Diverse` of the options above (pool_factor, optimism, parent_weight, quality_share, opener_cap:
         not read with one's own, ValueError where given). Fallback and steering need a ranking rule.
