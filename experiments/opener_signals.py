@@ -1,7 +1,8 @@
 """Which signals tell a niche-opener from the rest of a pool, and how rugged a task is under QD's mutation.
 
     python experiments/opener_signals.py [--tasks obstacle2d object2d] [--generations 100] [--seeds 2]
-        [--pools 4] [--ensemble 1] [--surrogate network] [--curiosity 0] [--out docs/data/opener_signals_v20.md]
+        [--pools 4] [--ensemble 1] [--surrogate network] [--curiosity 0] [--novelty_sampling 0]
+        [--out docs/data/opener_signals_v20.md]
 
 For each task and seed: a run of the "mqd" preset for `--generations` generations, then `--pools`
 pools of 8 x 100 IsoLine children of its final repertoire (what "mqd" chooses its rollouts
@@ -13,38 +14,36 @@ t_dist from every skill (it would open a niche). For each signal, over the pools
     generation of 100 rollouts chosen by that signal alone would open; the pool's base rate and
     the oracle's, which ranks by the true outcome, bound it).
 
-Signals: the run's model (plain and anchored predictions, as `ModelEmitter.predictions`) scored
-by the distance to the nearest skill (what `Diverse` ranks by) or by a smoothed novelty (mean
-distance to the 5 nearest skills; minus the number of skills within 0.1); the parent's
-novelty (the repertoire's, by which IsoLine draws parents); networks trained afresh for 2000
-Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts, or on the
-repertoire with the task's features as inputs (`Task.features`), with their held-out behavior
-error (MSE over the pools' valid children); and a
-classifier of openers (a network of 64 units fitted for 3000 steps of 64 rows to +1 for an
-opener and -1 for the rest) trained on the seed's other pools, every child of which was rolled
-out, and scored on the held-out pool: what a model of the action alone can learn of "would open
-a niche" from more labelled rollouts of the same repertoire than a run ever has. Three leads of issue 68:
-the run's own classifier of openers (the same network fitted to what the run's last 20 generations' rollouts
-did: opened a niche of the repertoire their generation began with, or not; run through ask/tell), alone and
-with its rank multiplied by the anchored novelty-5's; and a model relative to the parent (a network fitted on
-the other pools to the change of behavior from the parent's, from the parent's action and the child's step),
-scored at the parent's behavior plus the predicted change; with `--ensemble E` ("mqd" with E members), the
-members' spread alone and added to the anchored distance (optimism, as `Diverse` ranks with an ensemble). With
-`--surrogate local` the run is "mqd-local" (`LocalLinear` in place of the network, `mqd_jax.surrogate.local`), and
-"the run's model" rows are its predictions. With `--curiosity W` the run has `Curiosity(W)`
-(`mqd_jax.emitters.curiosity`), and the signals of its record: the factor of each child's parent's record, and
-the anchored distance times the parent's novelty (what `Diverse` ranks by, `parent_weight=1`), with and without
-the factor. Two rankings that use only what a run could know (0.23.2): P(open), the share of 32 points (the child's
-anchored prediction plus a residual drawn from the other pools' held-out anchored errors) that lie farther than
-t_dist from every skill, the model's error taken as it is rather than as zero; and a logistic regression, fitted on
-the other pools, of "opened" on six of the child's signals (its anchored nearest distance, novelty-5 and count
-within 0.1, its parent's novelty, its step from the parent and its predicted behavior's distance from the parent's):
-whether the weak signals combine. And what the run's own choices open: of its last 20 generations' rollouts past
-warm-up, the share that opened a niche, by source (`SOURCES`: the rule's choice of the inner emitter's children, of
-steered children, and the fallback's fill, which the model did not rank: the run's own base rate; opened: farther
-than t_dist from every skill its generation began with). And the task's ruggedness: quartiles of the distance
-between a child's behavior and its first parent's. Every child is rolled out: quick on the 2D tasks and the planar
-arm of sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
+Signals: the run's model (plain and anchored predictions, as `ModelEmitter.predictions`) scored by the distance to
+the nearest skill (what `Diverse` ranks by) or by a smoothed novelty (mean distance to the 5 nearest skills; minus
+the number of skills within 0.1); the parent's novelty (the repertoire's, by which IsoLine draws parents); networks
+trained afresh for 2000 Adam steps on the repertoire, or on the repertoire and the archive of rejected rollouts, or
+on the repertoire with the task's features as inputs (`Task.features`), with their held-out behavior error (MSE over
+the pools' valid children); and a classifier of openers (a network of 64 units fitted for 3000 steps of 64 rows to +1
+for an opener and -1 for the rest) trained on the seed's other pools, every child of which was rolled out, and scored
+on the held-out pool: what a model of the action alone can learn of "would open a niche" from more labelled rollouts
+of the same repertoire than a run ever has. Three leads of issue 68: the run's own classifier of openers (the same
+network fitted to what the run's last 20 generations' rollouts did: opened a niche of the repertoire their generation
+began with, or not; run through ask/tell), alone and with its rank multiplied by the anchored novelty-5's; and a
+model relative to the parent (a network fitted on the other pools to the change of behavior from the parent's, from
+the parent's action and the child's step), scored at the parent's behavior plus the predicted change; with
+`--ensemble E` ("mqd" with E members), the members' spread alone and added to the anchored distance (optimism, as
+`Diverse` ranks with an ensemble). With `--surrogate local` the run is "mqd-local" (`LocalLinear` in place of the
+network, `mqd_jax.surrogate.local`), and "the run's model" rows are its predictions. With `--curiosity W` the run has
+`Curiosity(W)` (`mqd_jax.emitters.curiosity`), and the signals of its record: the factor of each child's parent's
+record, and the anchored distance times the parent's novelty (what `Diverse` ranks by, `parent_weight=1`), with and
+without the factor. With `--novelty_sampling P` the run's model trains on mini-batches drawn by novelty ** P
+(`Surrogate.novelty_sampling`). Two rankings that use only what a run could know (0.23.2): P(open), the share of 32
+points (the child's anchored prediction plus a residual drawn from the other pools' held-out anchored errors) that
+lie farther than t_dist from every skill, the model's error taken as it is rather than as zero; and a logistic
+regression, fitted on the other pools, of "opened" on six of the child's signals (its anchored nearest distance,
+novelty-5 and count within 0.1, its parent's novelty, its step from the parent and its predicted behavior's distance
+from the parent's): whether the weak signals combine. And what the run's own choices open: of its last 20
+generations' rollouts past warm-up, the share that opened a niche, by source (`SOURCES`: the rule's choice of the
+inner emitter's children, of steered children, and the fallback's fill, which the model did not rank: the run's own
+base rate; opened: farther than t_dist from every skill its generation began with). And the task's ruggedness:
+quartiles of the distance between a child's behavior and its first parent's. Every child is rolled out: quick on the
+2D tasks and the planar arm of sample_efficiency.py (`--tasks arm`), minutes on a robot task (C MuJoCo).
 """
 
 from __future__ import annotations
@@ -232,12 +231,14 @@ def _run_with_history(cfg: Config, seed: int, last: int) -> tuple[Any, list[tupl
 
 
 def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: int = 1, surrogate: str = "network",
-            curiosity: int = 0) -> tuple[dict[str, list], dict[str, float]]:
+            curiosity: int = 0, novelty_sampling: int = 0) -> tuple[dict[str, list], dict[str, float]]:
     """Per signal, [(AUC, precision@100)] over the pools; and the ruggedness quartiles, the base rate and the
     number of skills. `ensemble` > 1: "mqd" with that many members, and the signals of their spread; `surrogate`
-    "local": "mqd-local"; `curiosity` > 0: with `Curiosity(curiosity)`, and the signals of its record."""
+    "local": "mqd-local"; `curiosity` > 0: with `Curiosity(curiosity)`, and the signals of its record;
+    `novelty_sampling` > 0: the run's model trained on mini-batches drawn by novelty to that power."""
     options = ({"ensemble_size": ensemble} if ensemble > 1 else {}) | (
-        {"curiosity": float(curiosity)} if curiosity else {})
+        {"curiosity": float(curiosity)} if curiosity else {}) | (
+        {"novelty_sampling": float(novelty_sampling)} if novelty_sampling else {})
     cfg = Config.paper(task_name, algorithm="mqd-local" if surrogate == "local" else "mqd",
                        max_generations=generations, algorithm_options=options)
     state, history, sources = _run_with_history(cfg, seed, HISTORY)
@@ -336,23 +337,26 @@ def signals(task_name: str, generations: int, seed: int, pools: int, ensemble: i
 
 def main() -> None:
     args = report.probe_arguments(__doc__, ["obstacle2d", "object2d"], 2, "docs/data/opener_signals_v20.md",
-                                  {"surrogate": ("network", "local")}, pools=4, ensemble=1, curiosity=0)
+                                  {"surrogate": ("network", "local")}, pools=4, ensemble=1, curiosity=0,
+                                  novelty_sampling=0)
     register_experiment_tasks(args.tasks)
     lines = [f"Command: `python experiments/opener_signals.py --tasks {' '.join(args.tasks)} --generations "
              f"{args.generations} --seeds {args.seeds} --pools {args.pools}"
              + (f" --ensemble {args.ensemble}" if args.ensemble > 1 else "")
              + (f" --curiosity {args.curiosity}" if args.curiosity else "")
+             + (f" --novelty_sampling {args.novelty_sampling}" if args.novelty_sampling else "")
              + (f" --surrogate {args.surrogate}`" if args.surrogate != "network" else "`"), "",
              f"Machine: {report.machine()}.", "",
              f"After {args.generations} generations of \"mqd\""
              + (" with `LocalLinear`" if args.surrogate == "local" else "")
              + (f" with `Curiosity({args.curiosity})`" if args.curiosity else "")
+             + (f" with `novelty_sampling={args.novelty_sampling}`" if args.novelty_sampling else "")
              + f": {args.pools} pools of {POOL} IsoLine children per seed, all rolled out; an opener would open a "
              f"niche. AUC: P(opener scores higher), 0.5 = chance; "
              f"precision@{CHOSEN}: openers among the {CHOSEN} best-scored. Mean over seeds and pools.", ""]
     for task_name in args.tasks:
         per_seed = [signals(task_name, args.generations, seed, args.pools, args.ensemble, args.surrogate,
-                            args.curiosity) for seed in range(args.seeds)]
+                            args.curiosity, args.novelty_sampling) for seed in range(args.seeds)]
         stats = {k: np.mean([s[1][k] for s in per_seed]) for k in per_seed[0][1]}
         lines += [f"### {task_name}", "",
                   f"Skills after {args.generations} generations: {stats['skills']:.0f}; openers in a pool (base "
