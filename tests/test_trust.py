@@ -89,6 +89,7 @@ def test_the_machine_names_its_cpu_and_what_makes_it_round_otherwise(tmp_path, m
     assert provenance.machine().startswith(f"{provenance.platform.machine()} (Some CPU with AVX-512), "
                                            f"{os.cpu_count()} CPU cores, jax {jax.__version__}")
 
+
 def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silently(tmp_path, capsys, refused,
                                                                                  tiny_flags):
     old = '{"config": {}, "provenance": {"versions": {"mqd-jax": "0.8.0"}}}'  # an older mqd-jax's, no checksum

@@ -33,7 +33,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from mqd_jax.core import pytree
+from mqd_jax.core import pytree, selection
 from mqd_jax.core.archive import Archive
 from mqd_jax.core.repertoire import Repertoire
 from mqd_jax.core.task import Task, feature_dim
@@ -213,18 +213,16 @@ def train(model: ModelState, key: jax.Array, data: Repertoire | Archive, task: T
     return fit(model, key, x, targets[rows], jnp.int32(feature_rows), learning_rate, batch_size, num_batches)
 
 
-
 def by_novelty(key: jax.Array, rep: Repertoire, power: float) -> jax.Array:
     """[C] slots of a resample of the repertoire's skills, with replacement, each drawn with probability
     proportional to (novelty + 1e-6) ** power (a skill without neighbours can still be drawn): the training rows
     of `train(novelty_power=power)`, which then weigh skills by their novelty as the parents are drawn
-    (`selection`), more steeply for power > 1. Where every weight underflows to 0, uniformly over the skills."""
+    (`selection`), more steeply for power > 1. Where every weight underflows to 0, uniformly over the skills
+    (`selection.probabilities`)."""
     capacity = rep.actions.shape[0]
-    valid = jnp.arange(capacity) < rep.count
-    weights = jnp.where(valid, (rep.novelty + 1e-6) ** float(power), 0.0)
-    total = weights.sum()
-    p = jnp.where(total > 0, weights / total, valid / jnp.maximum(rep.count, 1))
+    p = selection.probabilities((rep.novelty + 1e-6) ** float(power), jnp.arange(capacity) < rep.count)
     return jax.random.choice(key, capacity, (capacity,), p=p)
+
 
 def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,
         learning_rate: jax.Array, batch_size: int, num_batches: int) -> tuple[ModelState, jax.Array]:
