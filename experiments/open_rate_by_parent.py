@@ -23,6 +23,7 @@ import jax
 import numpy as np
 import report
 from extra_tasks import register_experiment_tasks
+from opener_signals import _nearest_skill
 from sample_efficiency import configured
 
 from mqd_jax import ask, tell
@@ -59,9 +60,8 @@ def rollouts_by_parent(spec: str, task_name: str, generations: int, seed: int) -
         rep, n = state.repertoire, int(state.repertoire.count)
         parents = getattr(candidates.info, "parents", None)
         if n > 1 and parents is not None and int(state.emitter.evaluations) >= cfg.emitter.warmup_samples:
-            skills, novelty = np.asarray(rep.behaviors[:n]), np.asarray(rep.novelty[:n])
-            nearest = np.sqrt(((np.asarray(behaviors)[:, None] - skills[None]) ** 2).sum(-1)).min(axis=1)
-            opened = np.asarray(valid) & (nearest > float(params.t_dist))
+            novelty = np.asarray(rep.novelty[:n])
+            opened = np.asarray(valid) & (_nearest_skill(rep, behaviors) > float(params.t_dist))
             parents = np.asarray(parents)
             chosen = np.asarray(candidates.rollout) & (parents >= 0)
             at = parents[chosen]

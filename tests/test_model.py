@@ -226,7 +226,7 @@ def test_a_generation_computes_the_tasks_features_of_its_pool_only(algorithm, op
 
 def test_by_novelty_draws_valid_skills_in_proportion_to_novelty_to_the_power():
     rep = Repertoire.empty(8, 1, 2, 4).replace(novelty=jnp.array([0.0, 1.0, 2.0, 3.0, 9.0, 9.0, 9.0, 9.0]),
-                                               count=jnp.int32(4))  # slots 4-7 hold no skill
+                                               valid=jnp.arange(8) < 4, count=jnp.int32(4))  # slots 4-7 hold no skill
     keys = jax.random.split(jax.random.PRNGKey(0), 500)
 
     def shares(r, power):

@@ -219,9 +219,8 @@ def by_novelty(key: jax.Array, rep: Repertoire, power: float) -> jax.Array:
     of `train(novelty_power=power)`, which then weigh skills by their novelty as the parents are drawn
     (`selection`), more steeply for power > 1. Where every weight underflows to 0, uniformly over the skills
     (`selection.probabilities`)."""
-    capacity = rep.actions.shape[0]
-    p = selection.probabilities((rep.novelty + 1e-6) ** float(power), jnp.arange(capacity) < rep.count)
-    return jax.random.choice(key, capacity, (capacity,), p=p)
+    p = selection.probabilities((rep.novelty + 1e-6) ** float(power), rep.valid)
+    return jax.random.choice(key, rep.capacity, (rep.capacity,), p=p)
 
 
 def fit(model: ModelState, key: jax.Array, inputs: jax.Array, targets: jax.Array, filled: jax.Array,
