@@ -27,13 +27,17 @@ def paths() -> list[pathlib.Path]:
     return sorted(TUTORIALS.glob("*.ipynb"))
 
 
-def execute(path: pathlib.Path, parameters: dict[str, Any] | None = None, timeout: int = 900) -> Any:
+def execute(path: pathlib.Path, parameters: dict[str, Any] | None = None, timeout: int = 900, setup: str = "") -> Any:
     """The notebook at `path` run top to bottom (raises nbclient's CellExecutionError naming a failing cell).
 
     `parameters` override names its "parameters" cell assigns; a name it does not assign is refused (a test
-    would otherwise run the notebook at its full size without saying so).
+    would otherwise run the notebook at its full size without saying so). `setup`: code the kernel runs before
+    the notebook's first cell, in that cell (it must print nothing: a test compares each cell's outputs).
     """
     notebook = nbformat.read(path, as_version=4)
+    if setup:
+        first = next(c for c in notebook.cells if c.cell_type == "code")
+        first.source = f"{setup}\n{first.source}"
     if parameters:
         cells = [c for c in notebook.cells if "parameters" in c.metadata.get("tags", ())]
         if len(cells) != 1:

@@ -3,6 +3,8 @@ import functools
 import os
 import subprocess
 import sys
+import tempfile
+from xml.etree import ElementTree
 
 # MuJoCo's offscreen renderer (tests that render skip where no EGL context can be made); read at mujoco's import.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -14,13 +16,14 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 # simulates for long in JAX (MJX) compiles that program at the default level (`optimized_jit`). The elemental
 # emitters may round a result differently from one program to another (measured: ask/tell's actions one
 # float32 ulp from the fused run's), so the tests that two different programs of a computation agree bit for
-# bit are marked `fusion_emitters` and run in a process with XLA's default emitters, as users run
-# (`pytest_pyfunc_call`).
+# bit are marked `fusion_emitters` (test_programs_agree.py) and run in a process with XLA's default emitters, as
+# users run, one process per module (`pytest_pyfunc_call`).
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
 if not os.environ.get("MQD_TESTS_FUSION_EMITTERS") and "xla_cpu_use_fusion_emitters" not in os.environ["XLA_FLAGS"]:
     os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
 
+import compiled
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,18 +40,42 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "fusion_emitters: runs in a process with XLA's default (fusion) emitters")
 
 
+_FUSED: dict[str, str | None] = {}  # a fusion_emitters test's node id -> None (passed) or why it failed
+
+
+def _run_fused(item: pytest.Item) -> None:
+    """Runs the `fusion_emitters` tests of `item`'s module that have not run, in one pytest process with XLA's
+    default emitters (one start-up for them all), and records each one's outcome in `_FUSED`."""
+    group = [i for i in item.session.items if i.get_closest_marker("fusion_emitters") is not None
+             and i.path == item.path and i.nodeid not in _FUSED]
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_cpu_use_fusion_emitters" not in f)
+    with tempfile.TemporaryDirectory() as folder:
+        report = os.path.join(folder, "report.xml")
+        out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--junitxml", report,
+                              *(i.nodeid for i in group)], env={**os.environ, FUSION_EMITTERS: "1", "XLA_FLAGS": flags},
+                             cwd=item.config.rootpath, capture_output=True, text=True)
+        cases = ({case.get("name"): case for case in ElementTree.parse(report).iter("testcase")}
+                 if os.path.exists(report) else {})
+    for i in group:
+        case = cases.get(i.name)
+        if case is None:
+            _FUSED[i.nodeid] = f"it did not run:\n{out.stdout[-6000:]}{out.stderr[-2000:]}"
+            continue
+        failed = [e for e in case if e.tag in ("failure", "error", "skipped")]
+        _FUSED[i.nodeid] = (f"{failed[0].tag}: {failed[0].get('message', '')}\n{(failed[0].text or '')[-6000:]}"
+                            if failed else None)
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_pyfunc_call(pyfuncitem):
-    """A `fusion_emitters` test runs in a pytest process of its own with XLA's default emitters (see above)."""
+    """A `fusion_emitters` test runs in a pytest process with XLA's default emitters (see above), with the others
+    of its module."""
     if pyfuncitem.get_closest_marker("fusion_emitters") is None or os.environ.get(FUSION_EMITTERS):
         return None
-    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_cpu_use_fusion_emitters" not in f)
-    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", pyfuncitem.nodeid],
-                         env={**os.environ, FUSION_EMITTERS: "1", "XLA_FLAGS": flags},
-                         cwd=pyfuncitem.config.rootpath, capture_output=True, text=True)
-    if out.returncode != 0:
-        pytest.fail(f"in a process with XLA's fusion emitters:\n{out.stdout[-6000:]}{out.stderr[-2000:]}",
-                    pytrace=False)
+    if pyfuncitem.nodeid not in _FUSED:
+        _run_fused(pyfuncitem)
+    if _FUSED[pyfuncitem.nodeid] is not None:
+        pytest.fail(f"in a process with XLA's fusion emitters: {_FUSED[pyfuncitem.nodeid]}", pytrace=False)
     return True
 
 
@@ -62,8 +89,10 @@ def compilation_cache(tmp_path_factory):
 
 @pytest.fixture(scope="module", autouse=True)
 def release_compiled_programs():
-    """Drops each test module's compiled programs when it ends: hundreds of them would fill the memory."""
+    """Drops each test module's compiled programs when it ends: every compiled program maps its code, and a
+    process that kept those of the whole suite aborted past Linux's limit on memory mappings (vm.max_map_count)."""
     yield
+    compiled.release()
     jax.clear_caches()
 
 
@@ -108,7 +137,7 @@ def assert_same():
     return check
 
 
-_TINY_FLAGS = ["--generations", "3", "--population", "8", "--capacity", "64"]
+_TINY_FLAGS = ["--generations", "3", "--population", "8", "--capacity", "64", "--archive-capacity", "16"]
 
 
 @pytest.fixture(scope="session")

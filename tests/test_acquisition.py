@@ -9,28 +9,34 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from compiled import compiled
 
 from mqd_jax import Anchoring, Config, IsoLine, ModelEmitter, Params, Steering, run_mqd
 from mqd_jax.core import algorithms
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import AddStatus, Repertoire
-from mqd_jax.emitters.acquisition import (
-    Budgeted,
-    Diverse,
-    Judged,
-    Threshold,
-    greedy_diverse,
-    parent_factor,
-    pool_neighbours,
-    rounds_diverse,
-)
+from mqd_jax.emitters import acquisition
+from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, parent_factor
 from mqd_jax.emitters.model_emitter import ModelEmitterState, _share, opener_auc
 from mqd_jax.emitters.pursuit import Fallback, FallbackState
 from mqd_jax.experiment.migrations import config_from
 from mqd_jax.surrogate import model
 from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState
+
+greedy_diverse, rounds_diverse = compiled(acquisition.greedy_diverse), compiled(acquisition.rounds_diverse)
+pool_neighbours = compiled(acquisition.pool_neighbours)
+
+
+def select(rule, *args):
+    """`rule.select(*args)`, compiled."""
+    return compiled(rule.select)(*args)
+
+
+def judge(emitter, *args, **kwargs):
+    """`emitter.judge(*args, **kwargs)`, compiled."""
+    return compiled(emitter.judge)(*args, **kwargs)
 
 
 def repertoire_of(behaviors, qualities, actions=None, capacity=8):
@@ -152,7 +158,7 @@ def test_diverse_cap_by_hand():
     wanted, t = jnp.ones(3, bool), jnp.float32(0.05)
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, t, 0.0, 3, parent_weight=1.0), [0, 1, 2])
     np.testing.assert_array_equal(rounds_diverse(pool, wanted, t, 0.0, 3, 4, parent_weight=1.0, cap=1.0), [1, 0, 2])
-    rows, _, _ = Diverse(1, 0.0, parent_weight=1.0, cap=3.0).select(jax.random.PRNGKey(0), (), pool, rep, wanted,
+    rows, _, _ = select(Diverse(1, 0.0, parent_weight=1.0, cap=3.0), jax.random.PRNGKey(0), (), pool, rep, wanted,
                                                                     Config().params().replace(t_dist=t), 3)
     np.testing.assert_array_equal(rows, [1, 0, 2])
 
@@ -166,7 +172,7 @@ def test_greedy_diverse_by_novelty_by_hand():
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, 2), [1, 0])
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 2, 1), [0, 1])
     with pytest.raises(ValueError, match=r"Diverse\.neighbours=6 needs"):
-        Diverse(1, neighbours=6).select(jax.random.PRNGKey(0), (), pool, rep, wanted, Config().params(), 2)
+        select(Diverse(1, neighbours=6), jax.random.PRNGKey(0), (), pool, rep, wanted, Config().params(), 2)
 
 
 def test_ensemble_members_train_as_independent_networks(linear_task):
@@ -174,9 +180,9 @@ def test_ensemble_members_train_as_independent_networks(linear_task):
     actions = jax.random.uniform(jax.random.PRNGKey(1), (64, 3), minval=-1.0, maxval=1.0)
     b, q, _ = linear_task.evaluate(actions, None)
     rep = repertoire_of(b, q, actions, capacity=64)
-    ensemble = model.init(jax.random.PRNGKey(0), 8, linear_task, ensemble_size=3)
+    ensemble = compiled(model.init)(jax.random.PRNGKey(0), 8, linear_task, ensemble_size=3)
     key = jax.random.PRNGKey(2)
-    trained, _ = model.train(ensemble, key, rep, linear_task, jnp.float32(0.01), 4, 5)
+    trained, _ = compiled(model.train)(ensemble, key, rep, linear_task, jnp.float32(0.01), 4, 5)
     rows = jax.random.randint(key, (5, 3, 4), 0, 64)
     net = model.network(8, linear_task)
     x, y = model.normalize_actions(actions, linear_task), model.normalize_targets(b, q, linear_task)
@@ -193,8 +199,8 @@ def test_ensemble_members_train_as_independent_networks(linear_task):
                              jax.tree.leaves(params), strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     # The ensemble's prediction is the members' mean.
-    members = model.predict_members(trained, actions[:5], linear_task)
-    mean_b, mean_q = model.predict(trained, actions[:5], linear_task)
+    members = compiled(model.predict_members)(trained, actions[:5], linear_task)
+    mean_b, mean_q = compiled(model.predict)(trained, actions[:5], linear_task)
     np.testing.assert_allclose(mean_b, members[..., :-1].mean(0), rtol=1e-6)
     np.testing.assert_allclose(mean_q, members[:, :, -1].mean(0), rtol=1e-6)
 
@@ -226,7 +232,7 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     rep = repertoire_of([[0.2, 0.3], [0.7, 0.9]], [0.4, 0.6], actions=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     pool = jnp.array([[0.1, 0.0, -0.1], [0.6, 0.4, 0.5], [-0.9, 0.9, 0.9]])
     emitter = knowing(Diverse(), 1, parts=(Anchoring("always", "nearest"),))
-    got = emitter.judge(NO_STATE, pool, rep, linear_task)
+    got = judge(emitter, NO_STATE, pool, rep, linear_task)
     for i, a in enumerate(np.asarray(pool)):
         j = int(np.argmin([np.sum((a - r) ** 2) for r in np.asarray(rep.actions[:2])]))  # action box [-1, 1]: x1
         members = [np.array([a[0] + e, a[1] - e, a[2]]) - np.array([rep.actions[j, 0] + e, rep.actions[j, 1] - e,
@@ -238,11 +244,11 @@ def test_anchored_predictions_and_the_spread_by_brute_force(linear_task):
     # Anchored differences cancel the members' offsets: they agree (spread 0); not anchored they disagree by 1/2
     # on each behavior axis around the mean.
     np.testing.assert_allclose(got.spread, 0.0, atol=1e-6)
-    plain = anchored(emitter, parts=()).judge(NO_STATE, pool, rep, linear_task)
+    plain = judge(anchored(emitter, parts=()), NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(plain.behaviors, np.asarray(pool)[:, :2] + [0.5, -0.5], rtol=1e-6)
     np.testing.assert_allclose(plain.spread, 0.5, rtol=1e-6)
     # An empty repertoire has nothing to anchor at: the plain prediction.
-    empty = emitter.judge(NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
+    empty = judge(emitter, NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
     np.testing.assert_allclose(empty.behaviors, plain.behaviors)
 
 
@@ -255,7 +261,7 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     pool = jnp.array([[0.125, 0.5, 0.0], [0.0, 0.75, 0.0], [-0.375, 1.0, 0.0], [0.25, -0.25, 0.0],
                       [-0.5, 0.25, 0.0]])
     emitter = knowing(Diverse(2), 3)
-    got = emitter.judge(NO_STATE, pool, rep, linear_task)
+    got = judge(emitter, NO_STATE, pool, rep, linear_task)
     b = np.asarray(pool)[:, :2] + [0.5, -0.5]
     d = np.sqrt(((b[:, None] - np.asarray(rep.behaviors[:4])[None]) ** 2).sum(-1))
     nearest = d.argmin(1)  # the first of equal minima: the lower slot
@@ -264,14 +270,14 @@ def test_judged_nearest_skill_neighbours_and_the_proposals_distances_by_brute_fo
     np.testing.assert_allclose(got.nearest_quality, np.asarray(rep.qualities)[nearest], rtol=1e-6)
     np.testing.assert_allclose(got.neighbours, np.sort(d, 1)[:, :3], rtol=1e-6)
     np.testing.assert_allclose(got.novelty, np.sort(d, 1)[:, :3].mean(1), rtol=1e-6)
-    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 64)
     state = state.replace(evaluations=jnp.int32(emitter.warmup_samples))  # past warm-up: the rule chooses
-    proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task,
+    proposal = compiled(emitter.propose)(jax.random.PRNGKey(1), state, rep, linear_task,
                                Params(jnp.float32(0.02), emitter.default_params()), 3)
     kept = np.sqrt(((np.asarray(proposal.info.predicted_behaviors)[:, None] - np.asarray(rep.behaviors[:4])[None])
                     ** 2).sum(-1)).min(1)
     np.testing.assert_allclose(proposal.info.predicted_distance, kept, rtol=1e-6)
-    empty = emitter.judge(NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
+    empty = judge(emitter, NO_STATE, pool, Repertoire.empty(8, 3, 2, 4), linear_task)
     assert np.all(np.isinf(empty.distance)) and np.all(np.asarray(empty.nearest_quality) == 0.0)
 
 
@@ -281,22 +287,22 @@ def test_predictions_anchored_at_the_named_parents_by_hand(linear_task):
     emitter = knowing(Diverse(), 1, parts=(Anchoring("always"),))
     assert emitter.part("anchoring").anchor == "parent"
     # Row 0's parent is the skill farther from it in action space (slot 1), row 1's slot 0; row 2 has none.
-    got = emitter.judge(NO_STATE, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
+    got = judge(emitter, NO_STATE, pool, rep, linear_task, parents=jnp.array([1, 0, -1]))
     for i, j in ((0, 1), (1, 0)):
         a, p = np.asarray(pool[i]), np.asarray(rep.actions[j])
         # The members' offsets cancel: b(parent) + (a - parent) on the behavior axes, q(parent) + a2 - p2.
         np.testing.assert_allclose(got.behaviors[i], np.asarray(rep.behaviors[j]) + (a - p)[:2], rtol=1e-6)
         np.testing.assert_allclose(got.qualities[i], float(rep.qualities[j]) + a[2] - p[2], rtol=1e-6)
-    plain = anchored(emitter, parts=()).judge(NO_STATE, pool, rep, linear_task)
+    plain = judge(anchored(emitter, parts=()), NO_STATE, pool, rep, linear_task)
     np.testing.assert_allclose(got.behaviors[2], plain.behaviors[2])  # no parent: the plain prediction
     # The parents' novelty, as the repertoire holds it; NaN without a parent, None where no parents are named.
     novel = rep.replace(novelty=rep.novelty.at[:2].set(jnp.array([0.25, 0.75])))
-    np.testing.assert_array_equal(emitter.judge(NO_STATE, pool, novel, linear_task, parents=jnp.array([1, 0, -1]))
+    np.testing.assert_array_equal(judge(emitter, NO_STATE, pool, novel, linear_task, parents=jnp.array([1, 0, -1]))
                                   .parent_novelty, [0.75, 0.25, np.nan])
-    assert emitter.judge(NO_STATE, pool, novel, linear_task).parent_novelty is None
+    assert judge(emitter, NO_STATE, pool, novel, linear_task).parent_novelty is None
     # An inner emitter that names no parents: anchored at the nearest skill, as anchor="nearest".
-    nearest = anchored(emitter, parts=(Anchoring("always", "nearest"),)).judge(NO_STATE, pool, rep, linear_task)
-    np.testing.assert_allclose(emitter.judge(NO_STATE, pool, rep, linear_task).behaviors, nearest.behaviors)
+    nearest = judge(anchored(emitter, parts=(Anchoring("always", "nearest"),)), NO_STATE, pool, rep, linear_task)
+    np.testing.assert_allclose(judge(emitter, NO_STATE, pool, rep, linear_task).behaviors, nearest.behaviors)
     assert not np.allclose(got.behaviors[:2], nearest.behaviors[:2])
     with pytest.raises(ValueError, match=r"Anchoring\.mode='nearest' is invalid"):
         Anchoring("nearest")
@@ -324,7 +330,7 @@ def test_greedy_diverse_by_hand():
     np.testing.assert_array_equal(greedy_diverse(pool, wanted, jnp.float32(0.05), 0.0, 5, quality_share=1.0),
                                   [3, 0, 2, 1, 4])
     # Budgeted ranking has no imagined skills: both duplicates before 2.
-    ranked = Budgeted(1).select(jax.random.PRNGKey(0), (),
+    ranked = select(Budgeted(1), jax.random.PRNGKey(0), (),
                                 pool.replace(novelty=jnp.array([1.0, 0.99, 0.8, 0.0, 0.001]),
                                              improvement=jnp.array([-0.4, -0.4, -0.4, 0.4, -0.3])),
                                 rep, wanted, Params(jnp.float32(0.02), Budgeted(1, t_nov=0.05).default_params()), 5)[0]
@@ -346,7 +352,7 @@ def test_diverse_selects_num_distinct_rows():
     pool = judged(jax.random.uniform(jax.random.PRNGKey(0), (40, 2)), jax.random.uniform(jax.random.PRNGKey(1), (40,)),
                   rep)
     params = Config().params()
-    rows, rollout, discarded = Diverse(4).select(jax.random.PRNGKey(0), (), pool, rep, jnp.ones(40, bool), params, 10)
+    rows, rollout, discarded = select(Diverse(4), jax.random.PRNGKey(0), (), pool, rep, jnp.ones(40, bool), params, 10)
     assert len(set(np.asarray(rows).tolist())) == 10 and bool(rollout.all()) and int(discarded) == 30
 
 
@@ -428,10 +434,10 @@ def test_diverse_chooses_in_rounds_from_rounds_from_rows_and_one_at_a_time_below
     pool = judged(jax.random.uniform(jax.random.PRNGKey(0), (40, 2)), jax.random.uniform(jax.random.PRNGKey(1), (40,)),
                   rep)
     args = (jax.random.PRNGKey(0), (), pool, rep, jnp.ones(40, bool), Config().params(), 10)
-    greedy = Diverse(4, selection="greedy").select(*args)[0]
-    np.testing.assert_array_equal(Diverse(4).select(*args)[0], greedy)  # "auto" below ROUNDS_FROM: bit for bit
+    greedy = select(Diverse(4, selection="greedy"), *args)[0]
+    np.testing.assert_array_equal(select(Diverse(4), *args)[0], greedy)  # "auto" below ROUNDS_FROM: bit for bit
     monkeypatch.setattr(acquisition, "ROUNDS_FROM", 10)
-    np.testing.assert_array_equal(Diverse(4).select(*args)[0], Diverse(4, selection="rounds").select(*args)[0])
+    np.testing.assert_array_equal(select(Diverse(4), *args)[0], select(Diverse(4, selection="rounds"), *args)[0])
 
 
 def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qualities():
@@ -442,11 +448,11 @@ def test_diverse_quality_margin_is_in_standard_deviations_of_the_repertoire_qual
     pool = judged([[0.0, 0.0], [0.0, 0.001], [0.0, 1.0]], [0.25, 0.5, 0.0], rep)
     params, wanted, key = Config().params().replace(t_dist=jnp.float32(0.05)), jnp.ones(3, bool), jax.random.PRNGKey(0)
     # One quality step of one: both beat the skill by more than 0.5 x 0.2 = 0.1? Only 1 (by 0.3); it goes first.
-    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=0.5).select(key, (), pool, rep, wanted, params, 3)
+    rows, _, _ = select(Diverse(1, 0.0, quality_share=1.0, quality_margin=0.5), key, (), pool, rep, wanted, params, 3)
     np.testing.assert_array_equal(rows, [1, 2, 0])
     # A margin of 2 x 0.2 = 0.4 leaves no improver preferred: the opener first, as without quality steps.
-    rows, _, _ = Diverse(1, 0.0, quality_share=1.0, quality_margin=2.0).select(key, (), pool, rep, wanted, params, 3)
-    np.testing.assert_array_equal(rows, Diverse(1, 0.0).select(key, (), pool, rep, wanted, params, 3)[0])
+    rows, _, _ = select(Diverse(1, 0.0, quality_share=1.0, quality_margin=2.0), key, (), pool, rep, wanted, params, 3)
+    np.testing.assert_array_equal(rows, select(Diverse(1, 0.0), key, (), pool, rep, wanted, params, 3)[0])
     assert int(rows[0]) == 2
 
 
@@ -508,7 +514,7 @@ def test_opener_auc_by_brute_force():
     novelty = jnp.asarray(np.round(rng.uniform(size=12), 1), jnp.float32)  # rounded: ties happen
     status = jnp.asarray(rng.choice([1, 2, 3], size=12), jnp.int32)
     usable = jnp.asarray(rng.uniform(size=12) < 0.8)
-    got = float(opener_auc(novelty, Evaluated(jnp.zeros((12, 2)), jnp.zeros(12), usable, status)))
+    got = float(compiled(opener_auc)(novelty, Evaluated(jnp.zeros((12, 2)), jnp.zeros(12), usable, status)))
     pos = [float(novelty[i]) for i in range(12) if usable[i] and status[i] == AddStatus.ADDED]
     neg = [float(novelty[i]) for i in range(12) if usable[i] and status[i] != AddStatus.ADDED]
     want = np.mean([1.0 if p > n else 0.5 if p == n else 0.0 for p, n in itertools.product(pos, neg)])
@@ -553,18 +559,18 @@ def test_the_mqd_preset_is_this_composition_and_spends_exactly_the_population(ti
 
 def test_a_rollout_buffer_keeps_the_latest_usable_rollouts_and_training_reads_only_them(linear_task):
     emitter = ModelEmitter(IsoLine(), Diverse(2), Surrogate(num_batches=3, training_data="rollouts", rollout_buffer=8))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 64)
     rep = Repertoire.empty(16, 3, 2, 4)
     params = Params(jnp.float32(0.02), emitter.default_params())
     for step in range(2):  # two generations of 6 candidates, the last of each unusable
         actions = jnp.full((6, 3), step * 0.1) + jnp.arange(6.0)[:, None] * 0.01
         b, q, _ = linear_task.evaluate(actions, None)
         usable = jnp.arange(6) < 5
-        proposal = emitter.propose(jax.random.PRNGKey(step), state, rep, linear_task, params, 6)
+        proposal = compiled(emitter.propose)(jax.random.PRNGKey(step), state, rep, linear_task, params, 6)
         proposal = proposal.replace(actions=actions, rollout=jnp.ones(6, bool))
         status = jnp.where(usable, int(AddStatus.ADDED), int(AddStatus.SKIPPED))
-        state, _ = emitter.update(jax.random.PRNGKey(9), state, proposal, Evaluated(b, q, usable, status), rep,
-                                  linear_task, params)
+        state, _ = compiled(emitter.update)(jax.random.PRNGKey(9), state, proposal, Evaluated(b, q, usable, status),
+                                            rep, linear_task, params)
     buffer = state.surrogate.rollouts
     assert int(buffer.total) == 10  # 5 usable a generation; the ring of 8 keeps the latest 8
     want = np.concatenate([np.asarray(jnp.arange(5.0) * 0.01) + s * 0.1 for s in range(2)])[-8:]
@@ -625,7 +631,7 @@ def test_nearest_skill_search_matches_brute_force(exact):
     rep = Repertoire.empty(capacity, 6, 2, 4).replace(actions=jnp.asarray(values), valid=jnp.arange(capacity) < count,
                                                        count=jnp.int32(count))
     queries = rng.uniform(-1, 1, (50, 6)).astype(np.float32)
-    sq, slot = repertoire_lib.nearest(rep, rep.actions, jnp.asarray(queries), exact=exact)
+    sq, slot = compiled(repertoire_lib.nearest)(rep, rep.actions, jnp.asarray(queries), exact=exact)
     d = ((queries[:, None] - values[None, :count]) ** 2).sum(-1)
     np.testing.assert_array_equal(slot, d.argmin(1))
     np.testing.assert_allclose(sq, d.min(1), rtol=1e-4, atol=1e-5)
@@ -642,7 +648,7 @@ def test_k_nearest_skills_match_brute_force(count):
     rep = Repertoire.empty(capacity, 1, 2, 4).replace(behaviors=jnp.asarray(behaviors),
                                                       valid=jnp.arange(capacity) < count, count=jnp.int32(count))
     queries = rng.integers(0, 6, (30, 2)).astype(np.float32)
-    sq, slots = repertoire_lib.k_nearest(rep, jnp.asarray(queries), k)
+    sq, slots = compiled(repertoire_lib.k_nearest)(rep, jnp.asarray(queries), k)
     d = ((queries[:, None] - behaviors[None, :count]) ** 2).sum(-1)
     order = np.argsort(d, axis=1, kind="stable")[:, :k]
     found = min(count, k)

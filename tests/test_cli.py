@@ -11,12 +11,13 @@ from mqd_jax.experiment import cli
 
 
 def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
-    cli.main(["run", "--generations", "6", "--population", "8", "--capacity", "64", "--chunk", "4",
-              "--out", str(tmp_path)])
+    cli.main(["run", "--generations", "6", "--population", "8", "--capacity", "64", "--archive-capacity", "16",
+              "--chunk", "4", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert out.count("generation ") == 2 and "done: coverage" in out
     metrics = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
-    _, want = run_mqd(jax.random.PRNGKey(0), Config(max_generations=6, population_size=8, capacity=64))
+    _, want = run_mqd(jax.random.PRNGKey(0), Config(max_generations=6, population_size=8, capacity=64,
+                                                                archive_capacity=16))
     np.testing.assert_array_equal(metrics["repertoire_size"], want["repertoire_size"])
     np.testing.assert_array_equal(metrics["coverage"], want["coverage"])
     rep = np.load(tmp_path / "repertoire.npz")
@@ -25,7 +26,8 @@ def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
 
 def test_mqd_run_mqd_writes_strict_json_with_null_for_untrained_generations(tmp_path, capsys):
     cli.main(["run", "--algorithm", "mqd", "--generations", "4", "--population", "8", "--capacity", "64",
-              "--algorithm-option", "warmup_samples=30", "num_batches=5", "--out", str(tmp_path)])
+              "--archive-capacity", "16", "--algorithm-option", "warmup_samples=30", "num_batches=5", "--out",
+              str(tmp_path)])
     text = (tmp_path / "metrics.json").read_text()
     assert "NaN" not in text
     metrics = json.loads(text)["metrics"]
@@ -36,8 +38,8 @@ def test_mqd_run_mqd_writes_strict_json_with_null_for_untrained_generations(tmp_
 
 
 def test_mqd_run_resumes_its_checkpoint_and_refuses_another_config(tmp_path, capsys):
-    argv = ["run", "--generations", "6", "--population", "8", "--capacity", "64", "--chunk", "3",
-            "--out", str(tmp_path)]
+    argv = ["run", "--generations", "6", "--population", "8", "--capacity", "64", "--archive-capacity", "16",
+            "--chunk", "3", "--out", str(tmp_path)]
     cli.main(argv)
     first = json.loads((tmp_path / "metrics.json").read_text())
     capsys.readouterr()

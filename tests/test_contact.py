@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from envs import arena2d, contact, push
 from mqd_jax import Surrogate, Task, run_mqd
@@ -76,7 +77,7 @@ def test_the_pushes_features_and_auxiliary_outputs_agree_with_their_rollouts():
     b_plain, _, valid_plain = jax.jit(lambda a: task.evaluate(a, None))(a)
     np.testing.assert_array_equal(b, b_plain)  # the same rollouts
     np.testing.assert_array_equal(valid, valid_plain)
-    valid, aux, f = np.asarray(valid), np.asarray(aux), np.asarray(task.features(a))
+    valid, aux, f = np.asarray(valid), np.asarray(aux), np.asarray(compiled(task.features)(a))
     moved = aux[valid, 0] > 0
     away = np.linalg.norm(np.asarray(b)[valid] - np.asarray(push.kuka.TABLE_CENTRE), axis=1) > push.MOVED
     assert moved.sum() >= 5 and moved[away].all()  # a cube that ends away from its start has moved
@@ -119,7 +120,8 @@ def test_the_gate_learns_which_actions_act_and_predicts_the_null_outcome_for_the
     usable = jnp.arange(256) < 250  # the last rows are not usable: not remembered, not in the null outcome
     outcomes = jnp.concatenate([b, q[:, None]], axis=1)
     for i in range(4):
-        state = gate.update(jax.random.PRNGKey(2 + i), state, a, aux, outcomes, usable, task, jnp.float32(1e-2))
+        state = compiled(gate.update)(jax.random.PRNGKey(2 + i), state, a, aux, outcomes, usable, task,
+                                      jnp.float32(1e-2))
     unmoved = np.asarray(aux[:250, 0] < 0)
     np.testing.assert_array_equal(np.asarray(state.counts), [4 * unmoved.sum(), 4 * (~unmoved).sum()])
     np.testing.assert_allclose(np.asarray(gate.null(state)), [0.2, 0.2, 0.5], atol=1e-6)
@@ -153,9 +155,10 @@ def test_a_run_with_a_gate_and_features_learns_the_flick_and_a_task_without_them
 def test_the_model_takes_the_features_as_inputs_after_the_actions():
     task = registry.make("obstacle2d")
     a = jax.random.uniform(jax.random.PRNGKey(0), (5, task.action_dim))
-    x = np.asarray(model.inputs(a, task, True))
-    np.testing.assert_array_equal(x[:, :task.action_dim], np.asarray(model.normalize_actions(a, task)))
-    np.testing.assert_array_equal(x[:, task.action_dim:], np.asarray(task.features(a)))
+    x, actions, features = map(np.asarray, compiled(lambda a: (model.inputs(a, task, True), model.normalize_actions(
+        a, task), task.features(a)))(a))
+    np.testing.assert_array_equal(x[:, :task.action_dim], actions)
+    np.testing.assert_array_equal(x[:, task.action_dim:], features)
     state = Surrogate(hidden_size=4, features=True).init(jax.random.PRNGKey(0), task, 64)
     assert state.model.params["params"]["Dense_0"]["kernel"].shape == (1, task.action_dim + 6, 4)
 

@@ -1,6 +1,7 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax.core import coverage
 
@@ -10,8 +11,8 @@ def _coverage(centres, radius, reachable=None, resolution=256):
     reach = np.ones((resolution, resolution), bool) if reachable is None else reachable
     grid = coverage.empty(low, high, reach, radius)
     c = jnp.asarray(centres, jnp.float32)
-    grid = coverage.stamp(grid, c, jnp.ones(len(c), jnp.int32), jnp.float32(radius))
-    return float(coverage.fraction(grid)), grid
+    grid = compiled(coverage.stamp)(grid, c, jnp.ones(len(c), jnp.int32), jnp.float32(radius))
+    return float(compiled(coverage.fraction)(grid)), grid
 
 
 def test_one_disk():

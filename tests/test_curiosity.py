@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax import Config, Curiosity, Diverse, Evaluated, IsoLine, ModelEmitter, Proposal, Surrogate, presets
 from mqd_jax.core.emitter import init_emitter
@@ -54,7 +55,7 @@ def test_the_judge_stage_reweighs_the_parents_novelty_as_the_rule_reads_it(linea
     rep = Repertoire.empty(4, 3, 2, 2)
     rep = rep.replace(valid=jnp.arange(4) < 3, count=jnp.int32(3), novelty=jnp.array([0.5, 2.0, 1.0, 0.0]))
     parents = jnp.array([0, 1, 2, -1], jnp.int32)
-    judged = emitter.judge(state, jnp.zeros((4, 3)), rep, linear_task, parents)
+    judged = compiled(emitter.judge)(state, jnp.zeros((4, 3)), rep, linear_task, parents)
     np.testing.assert_allclose(judged.parent_novelty[:3], [0.5 * 6 / 7, 2.0 * 6 / 5, 1.0], rtol=1e-6)
     assert np.isnan(judged.parent_novelty[3])  # a candidate without a parent stays without
     # A pool that names no parents is left as it is.

@@ -1,12 +1,14 @@
 """Every code block of the README and docs/ runs (Python), parses (the `mqd` command lines, TOML) or names
 files that exist (scripts, extras)."""
 
+import dataclasses
 import pathlib
 import re
 import shlex
 
 import pytest
 
+from mqd_jax import Config
 from mqd_jax.experiment import cli
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -18,9 +20,22 @@ def blocks(path, language):
     return re.findall(rf"^```{language}\n(.*?)^```", path.read_text(), flags=re.S | re.M)
 
 
+def small_repertoires(monkeypatch):
+    """Configs made without a capacity get 256 skills and archive slots, not 4096: the blocks' code is the
+    reader's, run as written, at a size whose programs compile in half the time (4096 slots double it). Their
+    searches then fill the repertoire, which the runs warn about (`RunWarning`, not shown)."""
+    defaults = dict(zip([f.name for f in dataclasses.fields(Config) if f.init], Config.__init__.__defaults__,
+                        strict=True))
+    monkeypatch.setattr(Config.__init__, "__defaults__",
+                        tuple({**defaults, "capacity": 256, "archive_capacity": 256}.values()))
+    assert Config().capacity == 256
+
+
+@pytest.mark.filterwarnings("ignore::mqd_jax.core.diagnostics.RunWarning")
 @pytest.mark.parametrize("path", [p for p in DOCS if blocks(p, "python")], ids=lambda p: p.name)
 def test_python_blocks_run_each_on_its_own(path, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # examples may write files: they must write none where they are run
+    small_repertoires(monkeypatch)
     for code in blocks(path, "python"):  # each alone, as a reader pastes one: it imports what it uses
         exec(compile(code, str(path), "exec"), {"__name__": "__main__"})
     assert not list(tmp_path.iterdir()), "an example left files in the folder it was run from"

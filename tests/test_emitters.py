@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax import (
     Budgeted,
@@ -146,7 +147,7 @@ def test_isoline_scales_vary_each_part_by_its_scale_from_its_own_key():
     params, key = Config().params(), jax.random.PRNGKey(7)
 
     def steps(emitter, key, num):
-        proposal = emitter.propose(key, (), rep, task, params, num)
+        proposal = compiled(emitter.propose)(key, (), rep, task, params, num)
         np.testing.assert_array_equal(proposal.parents, 0)
         return np.asarray(proposal.actions) - centre
 

@@ -3,6 +3,7 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax.core import grid
 
@@ -19,11 +20,11 @@ def test_runs_as_long_as_the_longest_hold_every_pair_within_t_dist(dim):
     near = clusters[rng.integers(0, 3, 200)] + 0.02 * rng.normal(size=(200, dim))
     points = np.concatenate([lattice, near, near[:10]]).astype(np.float32)
     ok = rng.random(len(points)) > 0.1
-    cells = grid.cells(jnp.asarray(points), jnp.asarray(ok), jnp.float32(t_dist))
+    cells = compiled(grid.cells)(jnp.asarray(points), jnp.asarray(ok), jnp.float32(t_dist))
     d = np.sqrt(((points[:, None].astype(np.float64) - points[None]) ** 2).sum(-1))
     within = (d <= np.float32(t_dist)) & ok[:, None] & ok[None] & ~np.eye(len(points), dtype=bool)
     for width, exact in ((int(cells.longest), True), (2, False)):
-        ids, there = map(np.asarray, grid.in_cells(width, cells))
+        ids, there = map(np.asarray, compiled(grid.in_cells)(width, cells))
         found = np.zeros_like(within)
         rows = np.repeat(np.arange(len(points)), ids.shape[1]).reshape(ids.shape)
         found[rows[there], ids[there]] = True

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax import Anchoring, Fallback, Imagination, IsoLine, ModelEmitter, Params, Steering, Surrogate, run_mqd
 from mqd_jax.core import repertoire as repertoire_lib
@@ -27,8 +28,8 @@ class _Perfect(Surrogate):
 
 def _insert(rep, actions, task, rollout):
     b, q, _ = task.evaluate(actions, None)
-    return repertoire_lib.insert(rep, actions, b, q, rollout, jnp.float32(T_DIST), K, repertoire_lib.NUM_NEAR,
-                                 chunk=32)
+    return compiled(repertoire_lib.insert)(rep, actions, b, q, rollout, jnp.float32(T_DIST), K,
+                                           repertoire_lib.NUM_NEAR, chunk=32)
 
 
 def test_survivors_by_hand():
@@ -44,17 +45,17 @@ def test_with_a_perfect_model_it_rolls_out_what_imagined_qd_keeps_by_brute_force
     rep, _ = _insert(Repertoire.empty(64, 3, 2, K + 2), start, linear_task, jnp.ones(12, bool))
     emitter = ModelEmitter(IsoLine(), Imagination(generations=2), _Perfect(), k=K)
     params = Params(jnp.float32(T_DIST), emitter.default_params())
-    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 64)
     key, num = jax.random.PRNGKey(7), 10
-    proposal = emitter.propose(key, state, rep, linear_task, params, num)
+    proposal = compiled(emitter.propose)(key, state, rep, linear_task, params, num)
     params = params.part(params.emitter.inner)  # IsoLine's, as the emitter hands them to it
 
     # Two QD generations by hand on the true outcomes; a candidate survives if it is alive after its generation
     # and the next generation does not write its slot.
     k0, k1 = jax.random.split(key, 2)
-    pool0 = IsoLine().propose(k0, (), rep, linear_task, params, num)
+    pool0 = compiled(IsoLine().propose)(k0, (), rep, linear_task, params, num)
     rep1, ins0 = _insert(rep, pool0.actions, linear_task, pool0.rollout)
-    pool1 = IsoLine().propose(k1, (), rep1, linear_task, params, num)
+    pool1 = compiled(IsoLine().propose)(k1, (), rep1, linear_task, params, num)
     _, ins1 = _insert(rep1, pool1.actions, linear_task, pool1.rollout)
     later = {int(s) for s, a in zip(ins1.slot, ins1.alive, strict=True) if a}
     keep0 = [bool(a) and int(s) not in later for s, a in zip(ins0.slot, ins0.alive, strict=True)]
@@ -73,8 +74,9 @@ def test_during_warm_up_it_rolls_out_the_inner_emitters_first_candidates(linear_
     emitter = ModelEmitter(IsoLine(), Imagination(generations=3), _Perfect(), k=K, warmup_samples=100)
     params = Params(jnp.float32(0.02), emitter.default_params())
     key = jax.random.PRNGKey(5)
-    proposal = emitter.propose(key, emitter.init(key, linear_task, 64), rep, linear_task, params, 6)
-    first = IsoLine().propose(jax.random.split(key, 3)[0], (), rep, linear_task, params.part(params.emitter.inner), 6)
+    proposal = compiled(emitter.propose)(key, compiled(emitter.init)(key, linear_task, 64), rep, linear_task, params, 6)
+    first = compiled(IsoLine().propose)(jax.random.split(key, 3)[0], (), rep, linear_task,
+                                        params.part(params.emitter.inner), 6)
     np.testing.assert_allclose(proposal.actions, first.actions, rtol=1e-5, atol=1e-6)
     assert bool(proposal.rollout.all())
 

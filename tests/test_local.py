@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.emitter import Evaluated
@@ -26,8 +27,9 @@ def _fed(model, actions, outcomes, usable=None):
     usable = np.ones(len(actions), bool) if usable is None else usable
     evaluated = Evaluated(jnp.asarray(outcomes[:, :2], jnp.float32), jnp.asarray(outcomes[:, 2], jnp.float32),
                           jnp.asarray(usable), None, None)
-    state = model.init(jax.random.PRNGKey(0), TASK, 16)
-    return model.observe(None, state, jnp.asarray(actions, jnp.float32), jnp.asarray(usable), evaluated, TASK, ())
+    state = compiled(model.init)(jax.random.PRNGKey(0), TASK, 16)
+    return compiled(model.observe)(None, state, jnp.asarray(actions, jnp.float32), jnp.asarray(usable), evaluated,
+                                   TASK, ())
 
 
 def _brute_force(model, actions, outcomes, at):
@@ -50,7 +52,8 @@ def test_a_prediction_is_the_weighted_least_squares_fit_to_the_nearest_rollouts(
                          actions[:, 3] ** 2], axis=1)
     at = actions[:6] + 0.03  # children near some of the rollouts
     for model in (LocalLinear(buffer=512), LocalLinear(neighbours=12, ridge=0.1, buffer=512)):
-        behaviors, qualities = model.predict(_fed(model, actions, outcomes), jnp.asarray(at, jnp.float32), TASK)
+        behaviors, qualities = compiled(model.predict)(_fed(model, actions, outcomes), jnp.asarray(at, jnp.float32),
+                                                       TASK)
         got = np.concatenate([np.asarray(behaviors), np.asarray(qualities)[:, None]], axis=1)
         want = np.stack([_brute_force(model, actions, outcomes, a) for a in at])
         np.testing.assert_allclose(got, want, rtol=2e-3, atol=2e-4)
@@ -65,12 +68,12 @@ def test_an_affine_map_is_recovered_with_its_jacobian_and_only_usable_rollouts_a
     state = _fed(model, actions, broken, usable)
     assert int(state.total) == usable.sum()
     at = jnp.asarray(actions[1:4] + 0.01, jnp.float32)
-    behaviors, qualities = model.predict(state, at, TASK)
+    behaviors, qualities = compiled(model.predict)(state, at, TASK)
     np.testing.assert_allclose(np.asarray(behaviors), np.asarray(at) @ slope[:, :2] + [0.3, -0.2], atol=2e-3)
     np.testing.assert_allclose(np.asarray(qualities), np.asarray(at) @ slope[:, 2] + 0.5, atol=2e-3)
     # differentiable in the action, also at a rollout's own action (distance 0)
     for a in (at[0], jnp.asarray(actions[1], jnp.float32)):
-        jacobian = jax.jacfwd(lambda x: model.predict(state, x, TASK)[0])(a)
+        jacobian = compiled(jax.jacfwd(lambda x, state: model.predict(state, x, TASK)[0]))(a, state)
         np.testing.assert_allclose(np.asarray(jacobian), slope[:, :2].T, atol=2e-2)
 
 
@@ -84,7 +87,8 @@ def test_the_elimination_solves_symmetric_positive_definite_systems():
 
 def test_in_mqd_it_observes_every_generation_s_rollouts_and_a_broken_observe_is_named():
     emitter = presets.mqd(surrogate=LocalLinear(buffer=64), warmup_samples=16, steering_share=0, curiosity=1.0)
-    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=5)
+    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=5, capacity=64,
+                          archive_capacity=16)
     state, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     rolled = int(metrics["num_evaluations"][-1]) - int(metrics["invalid"].sum())
     assert int(state.emitter.surrogate.total) == rolled > 16  # through warm-up and after (not only the skills)

@@ -104,21 +104,6 @@ def run(cfg):
     return run_mqd(jax.random.PRNGKey(4), cfg)
 
 
-@pytest.mark.fusion_emitters
-def test_mqd_with_an_always_passing_filter_equals_qd(tiny):
-    qd = tiny(task="obstacle2d", algorithm="qd")
-    options = dict(t_nov=0.0, t_qua=-1e9, warmup_samples=64, num_batches=20)
-    mqd = dataclasses.replace(qd, algorithm="mqd-paper", algorithm_options=options)
-    (s_qd, m_qd), (s_mqd, m_mqd) = run(qd), run(mqd)
-    assert np.all(np.isfinite(m_mqd["model_loss"][4:])) and int(s_mqd.emitter.surrogate.model.steps) == 20 * 9
-    for field in ("repertoire", "archive", "coverage", "key", "generation", "num_evaluations"):
-        for a, b in zip(jax.tree.leaves(getattr(s_qd, field)), jax.tree.leaves(getattr(s_mqd, field)), strict=True):
-            np.testing.assert_array_equal(a, b)
-    for name in m_qd:
-        if name not in ("model_loss", "prediction_error"):
-            np.testing.assert_array_equal(m_qd[name], m_mqd[name], err_msg=name)
-
-
 def check_masked_rows_left_no_trace(cfg, state, m):
     options = cfg.options
     pop, pool = cfg.population_size, cfg.population_size * (options["pool_factor"] if options["budgeted"] else 1)

@@ -49,7 +49,7 @@ class Drawn:
 
 def test_any_surrogate_is_fitted_after_warm_up_on_the_repertoire_and_its_error_measured(tiny, linear_task):
     cfg = tiny(task=linear_task, algorithm=ModelEmitter(IsoLine(), Drawn(), Truthful(), warmup_samples=40),
-               max_generations=6, population_size=16, capacity=64)
+               max_generations=6, population_size=16, capacity=64, archive_capacity=16)
     state, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     seen = np.asarray(metrics["num_evaluations"])
     fitted = seen >= 40  # the generations whose rollouts ended warm-up or came after it: 3rd to 6th

@@ -4,6 +4,7 @@ import numpy as np
 import oracle
 import pytest
 import reference
+from compiled import compiled
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -263,8 +264,8 @@ def test_a_band_holds_every_row_within_t_dist_and_the_axis_is_the_narrowest(dim)
     points = (lattice + rng.choice([0.0, 1e-4], lattice.shape)).astype(np.float32)
     ok = rng.random(300) > 0.1
     rows = jnp.asarray(points)
-    axis = bands.axis(rows, jnp.asarray(ok), jnp.float32(t_dist))
-    order, lo, hi, widest = bands.bands(rows[:50], jnp.asarray(ok[:50]), rows, jnp.asarray(ok), axis,
+    axis = compiled(bands.axis)(rows, jnp.asarray(ok), jnp.float32(t_dist))
+    order, lo, hi, widest = compiled(bands.bands)(rows[:50], jnp.asarray(ok[:50]), rows, jnp.asarray(ok), axis,
                                               jnp.float32(t_dist))
     d = np.asarray(neighbours.sq_dists(rows[:50], rows))
     for i in np.flatnonzero(ok[:50]):

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from compiled import compiled
 from mujoco import rollout
 
 from envs import kuka, physics
@@ -162,7 +163,7 @@ def test_a_released_cube_comes_to_rest_on_the_surface_below_and_a_hand_that_touc
                          via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.3, 0.2),  # the low shelf (0.08)
                          via(0.6, 0.05, 0.25) * 4 + via(0.5, 0.3, 0.135),  # the cube set down on it
                          via(0.7, -0.2, 0.3) * 4 + via(0.7, -0.3, 0.1)], jnp.float32)  # 5 cm into the high shelf
-    ctrl = task.rollout_controls(actions)
+    ctrl = compiled(task.rollout_controls)(actions)
     qpos, sensors, finite = task._rollout(np.asarray(ctrl), np.ones(5, bool))
     assert np.all(finite)
     cube = qpos[:, kuka.object_qpos_address(task._rollout.model):][:, :3]
@@ -219,7 +220,7 @@ def test_the_grasp_holds_the_cube_by_friction_and_a_shelf_can_knock_it_out():
     tour = via(0.5, 0.2, 0.3) + via(0.7, 0.2, 0.3, 1.2) + via(0.5, -0.2, 0.3, -1.2) + via(0.7, -0.2, 0.3)
     actions = jnp.array([tour + via(0.55, 0.2, 0.25),
                          via(0.45, -0.3, 0.12) * 2 + via(0.75, -0.3, 0.12) + via(0.5, 0.2, 0.25) * 2], jnp.float32)
-    plan = task.plan(actions)
+    plan = compiled(task.plan)(actions)
     assert np.all(np.asarray(plan.reached & plan.fits))
     _, sensors, _ = task._rollout(np.asarray(plan.ctrl), np.ones(2, bool))
     start = task._rollout.sensors_start

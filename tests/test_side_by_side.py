@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax import (
     Emitter,
@@ -43,11 +44,11 @@ def test_fixed_shares_concatenate_the_members_proposals_by_hand(linear_task):
     emitter = SideBySide((Uniform(), IsoLine()), shares=(0.25, 0.75))
     rep = Repertoire.empty(32, 3, 2, 4)
     params = Params(jnp.float32(0.02), emitter.default_params())
-    key, state = jax.random.PRNGKey(3), emitter.init(jax.random.PRNGKey(0), linear_task, 32)
-    got = emitter.propose(key, state, rep, linear_task, params, 12)
-    first = Uniform().propose(jax.random.fold_in(key, 0), (), rep, linear_task, params.part(()), 3)
-    second = IsoLine().propose(jax.random.fold_in(key, 1), (), rep, linear_task,
-                               params.part(params.emitter[1]), 9)
+    key, state = jax.random.PRNGKey(3), compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 32)
+    got = compiled(emitter.propose)(key, state, rep, linear_task, params, 12)
+    first = compiled(Uniform().propose)(jax.random.fold_in(key, 0), (), rep, linear_task, params.part(()), 3)
+    second = compiled(IsoLine().propose)(jax.random.fold_in(key, 1), (), rep, linear_task,
+                                         params.part(params.emitter[1]), 9)
     np.testing.assert_array_equal(got.actions, np.concatenate([first.actions, second.actions]))
     np.testing.assert_array_equal(got.rollout, np.concatenate([first.rollout, second.rollout]))
     assert emitter.counts(12) == (3, 9) and emitter.pool_size(12) == 12
@@ -86,7 +87,7 @@ def test_a_side_by_side_with_a_model_adapts_with_it(tiny):
     predict, trained = cfg.emitter.forward_model(state.emitter, get_task(cfg))
     own, _ = model.forward_model(state.emitter.members[1], get_task(cfg))
     a = state.repertoire.actions[0]
-    np.testing.assert_array_equal(jax.jacfwd(predict)(a), jax.jacfwd(own)(a))
+    np.testing.assert_array_equal(compiled(jax.jacfwd(predict))(a), compiled(jax.jacfwd(own))(a))
     assert bool(trained)
     qd_only = tiny(task="obstacle2d", algorithm=SideBySide((presets.qd(), presets.random())), max_generations=2)
     with pytest.raises(ValueError, match="needs a run whose emitter has a model"):

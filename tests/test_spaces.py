@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import plugin_tasks
 import pytest
+from compiled import compiled
 
 from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import coverage
@@ -26,13 +27,15 @@ def _grid(d: int, resolution: int, centres: np.ndarray, r: float, reachable: np.
     reach = np.ones((resolution,) * d, bool) if reachable is None else reachable
     cover = coverage.empty(low, high, reach, r)
     c = jnp.asarray(centres, jnp.float32)
-    return float(coverage.fraction(coverage.stamp(cover, c, jnp.ones(len(c), jnp.int32), jnp.float32(r))))
+    return float(compiled(lambda *a: coverage.fraction(coverage.stamp(*a)))(cover, c, jnp.ones(len(c), jnp.int32),
+                                                                           jnp.float32(r)))
 
 
 def _samples(points: np.ndarray, centres: np.ndarray, r: float) -> float:
     cover = coverage.empty_samples(points, np.ones(len(points), bool))
     c = jnp.asarray(centres, jnp.float32)
-    return float(coverage.fraction(coverage.stamp(cover, c, jnp.ones(len(c), jnp.int32), jnp.float32(r))))
+    return float(compiled(lambda *a: coverage.fraction(coverage.stamp(*a)))(cover, c, jnp.ones(len(c), jnp.int32),
+                                                                           jnp.float32(r)))
 
 
 def test_one_dimension_matches_the_exact_union_of_intervals():
@@ -134,7 +137,8 @@ def test_mqd_predicts_and_adapts_in_five_dimensions():
 
 
 def test_a_3d_plugin_task_runs_sweeps_adapts_plots_and_says_what_render_needs(tmp_path, capsys, refused):
-    task = ["--task", "plugin_tasks:make_waves", "--population", "8", "--capacity", "64", "--t-dist", "0.2"]
+    task = ["--task", "plugin_tasks:make_waves", "--population", "8", "--capacity", "64", "--archive-capacity", "16",
+            "--t-dist", "0.2"]
     cli.main(["run", *task, "--generations", "3", "--out", str(tmp_path / "run")])
     saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert saved["coverage_measured"].startswith("Monte Carlo, 65536 reachable points of 65536, standard error")
@@ -143,8 +147,9 @@ def test_a_3d_plugin_task_runs_sweeps_adapts_plots_and_says_what_render_needs(tm
             "--goal 0.5 0.5 has 2 numbers: the task's behaviors have 3")
     refused(["render", str(tmp_path / "run"), "--goal", "0.5", "0.5", "0.5"], "does not render its skills")
     sweep = ["sweep", "--tasks", "plugin_tasks:make_waves", "--algorithms", "mqd", "qd", "--seeds", "2",
-             "--generations", "4", "--population", "8", "--capacity", "64", "--t-dist", "0.2",
-             "--algorithm-option", "warmup_samples=16", "hidden_size=8", "--out", str(tmp_path / "sweep")]
+             "--generations", "4", "--population", "8", "--capacity", "64", "--archive-capacity", "16",
+             "--t-dist", "0.2", "--algorithm-option", "warmup_samples=16", "hidden_size=8", "--out",
+             str(tmp_path / "sweep")]
     cli.main(sweep)
     cli.main(["adapt", str(tmp_path / "sweep"), "--goals", "4", "--steps", "2"])
     cli.main(["plot", str(tmp_path / "sweep"), "--pair", "1", "3"])

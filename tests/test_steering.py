@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 import mqd_jax
 from mqd_jax import (
@@ -47,7 +48,8 @@ def skills_at(task, actions):
     a = jnp.asarray(actions, jnp.float32)
     b, q, valid = task.evaluate(a, None)
     rep = Repertoire.empty(16, 3, 2, repertoire_lib.NUM_NEAR)
-    return repertoire_lib.insert(rep, a, b, q, valid, jnp.float32(T_DIST), 3, repertoire_lib.NUM_NEAR, chunk=4)[0]
+    return compiled(repertoire_lib.insert)(rep, a, b, q, valid, jnp.float32(T_DIST), 3, repertoire_lib.NUM_NEAR,
+                                           chunk=4)[0]
 
 
 def linear_jacobian(actions):
@@ -61,7 +63,7 @@ CLOSE = [[0.0, 0.0, 0.0], [0.2, 0.0, -0.1], [0.0, 0.0, 0.15]]
 def test_a_steered_child_is_a_min_norm_step_from_the_skill_nearest_to_it(linear_task):
     task = wide(linear_task)
     rep = skills_at(task, CLOSE)
-    children, named = Steering(step_low=1.0, step_high=3.0).steer(jax.random.PRNGKey(0), rep, linear_jacobian,
+    children, named = compiled(Steering(step_low=1.0, step_high=3.0).steer)(jax.random.PRNGKey(0), rep, linear_jacobian,
                                                                   task, Params(), 400)
     b, _, _ = task.evaluate(children, None)
     skills = np.asarray(rep.behaviors[:3])
@@ -84,7 +86,7 @@ def test_a_step_longer_than_the_way_ends_on_the_target(linear_task):
     # Targets are uniform in the behavior box: the children of steps that reach them are, too.
     task = wide(linear_task)
     rep = skills_at(task, CLOSE)
-    children, _ = Steering(step_low=100.0, step_high=100.0).steer(jax.random.PRNGKey(1), rep, linear_jacobian,
+    children, _ = compiled(Steering(step_low=100.0, step_high=100.0).steer)(jax.random.PRNGKey(1), rep, linear_jacobian,
                                                                   task, Params(), 2000)
     b = np.asarray(task.evaluate(children, None)[0])
     assert (b > -1e-5).all() and (b < 1 + 1e-5).all()
@@ -95,8 +97,8 @@ def test_a_step_longer_than_the_way_ends_on_the_target(linear_task):
 def test_novelty_parents_step_in_every_direction(linear_task):
     task = wide(linear_task)
     rep = skills_at(task, CLOSE[:1])
-    children, _ = Steering(parents="novelty").steer(jax.random.PRNGKey(3), rep, linear_jacobian, task, Params(),
-                                                    400)
+    children, _ = compiled(Steering(parents="novelty").steer)(jax.random.PRNGKey(3), rep, linear_jacobian, task,
+                                                              Params(), 400)
     offset = np.asarray(task.evaluate(children, None)[0]) - np.asarray(rep.behaviors[0])
     step = np.linalg.norm(offset, axis=1)
     assert (step >= T_DIST - 1e-5).all() and (step <= 3 * T_DIST + 1e-5).all()
@@ -112,7 +114,7 @@ def test_a_mutation_step_is_an_iso_mutation_of_the_drawn_skill_without_the_model
         raise AssertionError("a mutation step asks the model for no Jacobian")
 
     steering = Steering(step="mutation", iso_sigma=0.03)
-    children, parents = steering.steer(jax.random.PRNGKey(4), rep, no_model, task, Params(), 4000)
+    children, parents = compiled(steering.steer)(jax.random.PRNGKey(4), rep, no_model, task, Params(), 4000)
     np.testing.assert_array_equal(parents, 0)  # the one skill
     change = np.asarray(children) - np.asarray(CLOSE[0], np.float32)
     np.testing.assert_allclose(change.mean(0), 0.0, atol=0.02)
@@ -125,8 +127,9 @@ def test_a_quality_step_climbs_the_gradient_without_moving_the_linearized_behavi
     gradient = jnp.asarray([0.3, 1.0, -0.4], jnp.float32)
     ascent = lambda actions: jnp.broadcast_to(gradient, actions.shape)  # noqa: E731
     key, num = jax.random.PRNGKey(5), 200
-    plain = np.asarray(Steering().steer(key, rep, linear_jacobian, task, Params(), num)[0])
-    climbed = np.asarray(Steering(quality=2.0).steer(key, rep, linear_jacobian, task, Params(), num, ascent)[0])
+    plain = np.asarray(compiled(Steering().steer)(key, rep, linear_jacobian, task, Params(), num)[0])
+    climbing = compiled(Steering(quality=2.0).steer)
+    climbed = np.asarray(climbing(key, rep, linear_jacobian, task, Params(), num, ascent)[0])
     extra = climbed - plain  # the same parents and aims: only the null-space step differs
     np.testing.assert_allclose(extra @ A.T, 0.0, atol=1e-5)  # A's null space: the behavior is unchanged
     parents = np.asarray(rep.actions)[np.linalg.norm(
@@ -141,7 +144,7 @@ def test_a_quality_step_climbs_the_gradient_without_moving_the_linearized_behavi
 
 def test_steered_children_stay_in_the_action_box(linear_task):
     rep = skills_at(linear_task, [[0.99, -0.99, 0.99]])
-    children, _ = Steering(step_low=50.0, step_high=50.0).steer(jax.random.PRNGKey(2), rep, linear_jacobian,
+    children, _ = compiled(Steering(step_low=50.0, step_high=50.0).steer)(jax.random.PRNGKey(2), rep, linear_jacobian,
                                                                 linear_task, Params(), 64)
     assert (np.abs(np.asarray(children)) <= 1.0).all()
     assert (np.abs(np.asarray(children)) == 1.0).any()  # some were clipped
@@ -171,8 +174,11 @@ def test_steering_needs_a_ranking_rule_and_is_not_imagined():
 
 def steered_by(emitter, key, state, pool, rep, task, params, num, warm_up):
     """The pool as the emitter's steering part's pool stage leaves it, and which rows it steered."""
-    view = View(emitter.model, state.surrogate, rep, task, params, num, warm_up)
-    return emitter.part("steering").pool(key, state.parts["steering"], pool, view)
+    def pool_stage(key, state, pool, rep, params, warm_up):
+        view = View(emitter.model, state.surrogate, rep, task, params, num, warm_up)
+        return emitter.part("steering").pool(key, state.parts["steering"], pool, view)
+
+    return compiled(pool_stage)(key, state, pool, rep, params, warm_up)
 
 
 def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
@@ -181,12 +187,12 @@ def test_the_model_s_pool_is_steered_after_warm_up_only(linear_task):
     emitter's; during warm-up the pool is the inner emitter's."""
     emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8), warmup_samples=10,
                            parts=(Steering(share=0.5, step_low=0.05, step_high=0.05),))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 64)
     state = state.replace(surrogate=state.surrogate.replace(model=model.init(jax.random.PRNGKey(3), 8, linear_task)))
     predict = lambda actions: emitter.surrogate.predict(state.surrogate, actions, linear_task)  # noqa: E731
     rep = skills_at(linear_task, [[0.1, -0.2, 0.3]])
     params, key = Config().params(), jax.random.PRNGKey(4)
-    pool = emitter.inner.propose(key, state.inner, rep, linear_task, params, 40)
+    pool = compiled(emitter.inner.propose)(key, state.inner, rep, linear_task, params, 40)
     for warm_up, steered_rows in ((True, 0), (False, 20)):
         got, steered = steered_by(emitter, jax.random.PRNGKey(5), state, pool, rep, linear_task, params, 10,
                                         jnp.bool_(warm_up))
@@ -222,14 +228,14 @@ def test_a_child_whose_jacobian_is_not_finite_keeps_the_inner_candidate(linear_t
                   linear_task.behavior_high)
     emitter = ModelEmitter(IsoLine(), Diverse(pool_factor=4), Surrogate(hidden_size=8, features=True),
                            parts=(Steering(share=0.5),))
-    state = emitter.init(jax.random.PRNGKey(0), task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), task, 64)
     rep = skills_at(task, [[-0.5, 0.0, 0.0], [0.5, 0.3, 0.1]])  # the first: a masked norm at 0
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
-    pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, task, params.part(params.emitter.inner),
-                                 400)
+    pool = compiled(emitter.inner.propose)(jax.random.PRNGKey(1), state.inner, rep, task,
+                                           params.part(params.emitter.inner), 400)
     got, steered = steered_by(emitter, jax.random.PRNGKey(2), state, pool, rep, task, params, 100, jnp.bool_(False))
     # The steering parents do not depend on the Jacobian: the same key with a finite one draws them.
-    parents = np.asarray(emitter.part("steering").steer(jax.random.fold_in(jax.random.PRNGKey(2), 2), rep,
+    parents = np.asarray(compiled(emitter.part("steering").steer)(jax.random.fold_in(jax.random.PRNGKey(2), 2), rep,
                                                            linear_jacobian, task, params, 200)[1])
     assert 0 < (parents == 0).sum() < 200  # both parents were drawn
     assert np.isfinite(np.asarray(got.actions)).all()
@@ -246,21 +252,21 @@ def test_a_proposal_names_each_candidate_s_parent_steered_or_not(linear_task):
     emitter = ModelEmitter(IsoLine(iso_sigma=0.0, line_sigma=0.0), Diverse(pool_factor=4),
                            Surrogate(hidden_size=8), parts=(Steering(share=0.5, step="mutation", iso_sigma=0.0),
                                                             Anchoring("always")))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 64)
     rep = skills_at(linear_task, [[0.1 * i, -0.05 * i, 0.02 * i * i] for i in range(8)])
     params = mqd_jax.Params(jnp.float32(T_DIST), emitter.default_params())
     inner = params.part(params.emitter.inner)
-    pool = emitter.inner.propose(jax.random.PRNGKey(1), state.inner, rep, linear_task, inner, 48)
+    pool = compiled(emitter.inner.propose)(jax.random.PRNGKey(1), state.inner, rep, linear_task, inner, 48)
     steered_pool, steered = steered_by(emitter, jax.random.PRNGKey(2), state, pool, rep, linear_task, params, 12,
                                              jnp.bool_(False))
     assert steered.sum() == 24 and (np.asarray(steered_pool.parents) >= 0).all()
     np.testing.assert_array_equal(steered_pool.actions, np.asarray(rep.actions)[np.asarray(steered_pool.parents)])
-    proposal = emitter.propose(jax.random.PRNGKey(1), state, rep, linear_task, params, 12)
+    proposal = compiled(emitter.propose)(jax.random.PRNGKey(1), state, rep, linear_task, params, 12)
     parents = np.asarray(proposal.parents)
     assert (parents >= 0).all() and len(set(parents)) > 1
     np.testing.assert_array_equal(proposal.actions, np.asarray(rep.actions)[parents])
     # Before the first skill there is no parent: IsoLine's uniform candidates name -1.
-    first = IsoLine().propose(jax.random.PRNGKey(2), (), Repertoire.empty(16, 3, 2, 4), linear_task, inner, 5)
+    first = compiled(IsoLine().propose)(jax.random.PRNGKey(2), (), Repertoire.empty(16, 3, 2, 4), linear_task, inner, 5)
     np.testing.assert_array_equal(first.parents, -1)
 
 

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiled import compiled
 
 from mqd_jax import Diverse, Evaluated, IsoLine, ModelEmitter, Params, Surrogate, Task, Threshold, run_mqd
 from mqd_jax.emitters.step_aside import StepAside, StepAsideState, explained
@@ -51,17 +52,19 @@ def test_the_skill_is_an_average_of_the_explained_variance_by_hand():
 
 def test_a_model_at_chance_rolls_out_the_inner_emitters_first_candidates(linear_task):
     emitter = ModelEmitter(IsoLine(), Diverse(4), Surrogate(num_batches=2), parts=(StepAside(),))
-    state = emitter.init(jax.random.PRNGKey(0), linear_task, 64)
+    state = compiled(emitter.init)(jax.random.PRNGKey(0), linear_task, 64)
     key, params = jax.random.PRNGKey(1), Params(jnp.float32(0.02), emitter.default_params())
     actions = jax.random.uniform(jax.random.PRNGKey(2), (20, 3), minval=-1.0, maxval=1.0)
     rep = _skills(linear_task, actions)
-    pool = IsoLine().propose(key, (), rep, linear_task, Params(jnp.float32(0.02), IsoLine().default_params()), 32)
-    at_chance = emitter.propose(key, state.replace(parts={"step_aside": StepAsideState(jnp.float32(0.02))}),
-                                rep, linear_task, params, 8)
+    pool = compiled(IsoLine().propose)(key, (), rep, linear_task, Params(jnp.float32(0.02), IsoLine().default_params()),
+                                       32)
+    propose = compiled(emitter.propose)
+    at_chance = propose(key, state.replace(parts={"step_aside": StepAsideState(jnp.float32(0.02))}), rep, linear_task,
+                        params, 8)
     np.testing.assert_array_equal(at_chance.actions, pool.actions[:8])
     assert not np.asarray(at_chance.info.from_model).any()
-    skilled = emitter.propose(key, state.replace(parts={"step_aside": StepAsideState(jnp.float32(0.8))}),
-                              rep, linear_task, params, 8)
+    skilled = propose(key, state.replace(parts={"step_aside": StepAsideState(jnp.float32(0.8))}), rep, linear_task,
+                      params, 8)
     assert np.asarray(skilled.info.from_model).all()
     assert not np.array_equal(skilled.actions, pool.actions[:8])  # the rule's choice
 

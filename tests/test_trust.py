@@ -49,13 +49,13 @@ def test_run_folder_refuses_another_config_and_keeps_the_first_run(tmp_path, cap
     cli.main(["run", *tiny_flags, "--generations", "2", "--algorithm", "random", "--out", out, "--overwrite"])
     assert "--overwrite: removed" in capsys.readouterr().out
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["config"] == Config(algorithm="random", max_generations=2, population_size=8,
-                                     capacity=64).to_dict()
+    assert saved["config"] == Config(algorithm="random", max_generations=2, population_size=8, capacity=64,
+                                     archive_capacity=16).to_dict()
 
 
 def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny_flags):
     cli.main(["run", *tiny_flags, "--seed", "7", "--out", str(tmp_path)])
-    cfg = Config(max_generations=3, population_size=8, capacity=64).to_dict()
+    cfg = Config(max_generations=3, population_size=8, capacity=64, archive_capacity=16).to_dict()
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["config"] == cfg and saved["seed"] == 7
     assert saved["key"] == np.asarray(jax.random.PRNGKey(7)).tolist()
@@ -106,7 +106,7 @@ def test_results_of_an_older_version_without_a_manifest_are_not_replaced_silentl
 
 def sweep(out, *flags):
     cli.main(["sweep", "--tasks", "obstacle2d", "--generations", "3", "--population", "8", "--capacity", "64",
-              "--out", str(out), *flags])
+              "--archive-capacity", "16", "--out", str(out), *flags])
 
 
 def test_sweep_refuses_a_batch_of_another_config_before_running_anything(tmp_path, capsys, refused, tiny_flags):
@@ -142,14 +142,14 @@ def test_batches_need_agree_only_on_the_options_both_presets_take(tmp_path):
     the options both take (hidden size), not on those one of them has alone (ensemble size, t_nov)."""
     sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
     qd = folders.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
-    cfg = Config(max_generations=3, population_size=8, capacity=64)
+    cfg = Config(max_generations=3, population_size=8, capacity=64, archive_capacity=16)
     checkpoint.save(str(tmp_path / "obstacle2d_mqd.msgpack"), init(jax.random.PRNGKey(0), cfg), {}, cfg,
                     jax.random.PRNGKey(0))
 
     def add(algorithm, **options):
         config = Config.from_dict(qd["config"])
         made = Config(task=config.task, algorithm=algorithm, algorithm_options=options, max_generations=3,
-                      population_size=8, capacity=64)
+                      population_size=8, capacity=64, archive_capacity=16)
         folders.write_json(str(tmp_path / f"obstacle2d_{algorithm}.json"), {**qd, "config": made.to_dict()})
         shutil.copy(tmp_path / "obstacle2d_qd.npz", tmp_path / f"obstacle2d_{algorithm}.npz")
 
@@ -190,7 +190,7 @@ def test_saving_a_batch_removes_the_tables_made_before_it_and_only_those(tmp_pat
         for name in made:
             folders.write_atomically(str(tmp_path / name), b"made from earlier results")
     (tmp_path / "fig2_mine.png").write_text("the user's, named like a figure")
-    cfg = Config(max_generations=3, population_size=8, capacity=64, algorithm="random")
+    cfg = Config(max_generations=3, population_size=8, capacity=64, archive_capacity=16, algorithm="random")
     keys = np.asarray(seed_keys(2))
     states, metrics = run_batch(cfg, keys)
     results.save_runs(str(tmp_path), cfg, keys, states, metrics, 1.0)
@@ -262,7 +262,7 @@ def test_params_check_skips_traced_values_and_accepts_the_configs_own():
 
 
 def test_adapt_refuses_a_state_of_another_task():
-    cfg = Config(max_generations=2, population_size=8, capacity=64)
+    cfg = Config(max_generations=2, population_size=8, capacity=64, archive_capacity=16)
     state, _ = run_mqd(jax.random.PRNGKey(0), cfg)
     with pytest.raises(ValueError, match=r"does not belong to this config.*task 'object2d'"):
         adapt(state, np.zeros((2, 2), np.float32), jax.random.PRNGKey(1), dataclasses.replace(cfg, task="object2d"),
@@ -270,7 +270,7 @@ def test_adapt_refuses_a_state_of_another_task():
 
 
 def test_a_checkpoint_altered_in_place_is_refused(tmp_path):
-    cfg = Config(max_generations=2, population_size=8, capacity=64)
+    cfg = Config(max_generations=2, population_size=8, capacity=64, archive_capacity=16)
     key, path = jax.random.PRNGKey(0), str(tmp_path / "c.msgpack")
     checkpoint.run_with_checkpoints(key, cfg, path, every=1)
     data = bytearray((tmp_path / "c.msgpack").read_bytes())
@@ -291,7 +291,7 @@ def test_unreliable_runs_warn_once_with_counts(changes, match):
     import plugin_tasks
 
     cfg = Config(task=plugin_tasks.make_reach(**changes), algorithm="mqd", max_generations=3, population_size=8,
-                 capacity=64, algorithm_options=dict(warmup_samples=8, num_batches=2))
+                 capacity=64, archive_capacity=16, algorithm_options=dict(warmup_samples=8, num_batches=2))
     with pytest.warns(diagnostics.RunWarning, match=match) as caught:
         _, metrics = run_mqd(jax.random.PRNGKey(0), cfg)
     caught = [w for w in caught if w.category is diagnostics.RunWarning]
@@ -307,4 +307,4 @@ def test_a_sound_run_does_not_warn():
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", diagnostics.RunWarning)
-        run_mqd(jax.random.PRNGKey(0), Config(max_generations=2, population_size=8, capacity=64))
+        run_mqd(jax.random.PRNGKey(0), Config(max_generations=2, population_size=8, capacity=64, archive_capacity=16))

@@ -16,9 +16,10 @@ from mqd_jax.core.run import init
 from mqd_jax.experiment import checkpoint, cli, folders, results
 from mqd_jax.experiment import progress as progress_lib
 
-TINY = ["--generations", "4", "--population", "8", "--capacity", "64", "--chunk", "2", "--algorithm", "random"]
+TINY = ["--generations", "4", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--chunk", "2",
+        "--algorithm", "random"]
 SWEEP = ["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", "--seeds", "2", "--population", "8", "--capacity",
-         "64"]
+         "64", "--archive-capacity", "16"]
 
 
 def stop_after(monkeypatch, generation, then):
@@ -73,7 +74,7 @@ def test_a_folder_swapped_mid_run_receives_nothing_and_the_run_says_where_it_wro
     assert (out / "run.png").read_bytes() == b"the user's picture"
     saved = folders.read_json(str(moved / "metrics.json"), "")
     _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="random", max_generations=4, population_size=8,
-                                                     capacity=64))
+                                                     capacity=64, archive_capacity=16))
     np.testing.assert_array_equal(saved["metrics"]["coverage"], whole["coverage"])
     assert folders.LOCK not in os.listdir(moved) and folders.LOCK not in os.listdir(out)
     assert "was moved or replaced while this command ran" in err and f"now at {str(moved)!r}" in err
@@ -173,7 +174,7 @@ def test_resume_needs_no_flags_and_refuses_flags_that_disagree(tmp_path, capsys,
     saved = folders.read_json(os.path.join(out, "metrics.json"), "")
     assert saved["seed"] == 3 and saved["config"]["max_generations"] == 4
     _, whole = run_mqd(jax.random.PRNGKey(3), Config(algorithm="random", max_generations=4, population_size=8,
-                                                     capacity=64))
+                                                     capacity=64, archive_capacity=16))
     np.testing.assert_array_equal(saved["metrics"]["coverage"], whole["coverage"])
     # --overwrite sets a damaged checkpoint aside, never deletes it.
     path = tmp_path / "checkpoint.msgpack"

@@ -22,7 +22,7 @@ from mqd_jax.core.task import BEHAVIOR_DIMS
 from mqd_jax.experiment import checkpoint, cli, folders, plots, provenance, results
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-TINY = ["--generations", "2", "--population", "8", "--capacity", "64"]
+TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16"]
 
 
 def sweep_argv(out, *flags, algorithms=("qd",)):
@@ -84,7 +84,8 @@ def test_results_record_the_implementation_and_tables_refuse_to_mix_them(tmp_pat
     assert saved["implementation"] == {"mqd_jax": mqd_jax.__version__, "task": registry.source("obstacle2d")}
     import plugin_tasks
 
-    cfg = Config(task="obstacle2d", algorithm="random", max_generations=2, population_size=8, capacity=64)
+    cfg = Config(task="obstacle2d", algorithm="random", max_generations=2, population_size=8, capacity=64,
+                 archive_capacity=16)
     mqd_jax.run_mqd(jax.random.PRNGKey(0), cfg)  # compiled for the built-in ...
     registry.register("obstacle2d", plugin_tasks.make_reach, replace=True)
     state, _ = mqd_jax.run_mqd(jax.random.PRNGKey(0), cfg)  # ... and now runs the replacement, not that program
