@@ -5,4 +5,4 @@ is it, and every results file records it (`mqd_jax.experiment.provenance`). A sw
 only batches written by this version (`mqd_jax.experiment.results`).
 """
 
-__version__ = "0.23.5"
+__version__ = "0.24.0"

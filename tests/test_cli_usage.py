@@ -21,7 +21,7 @@ from mqd_jax.experiment import progress as progress_lib
 
 
 def test_a_chunk_that_does_not_divide_the_run_compiles_no_second_program(tmp_path, caplog):
-    cfg = Config(max_generations=6, population_size=8, capacity=64)
+    cfg = Config(max_generations=6, population_size=8, capacity=64, archive_capacity=16)
     with jax.log_compiles(), caplog.at_level(logging.WARNING, logger="jax"):
         _, chunked = checkpoint.run_with_checkpoints(jax.random.PRNGKey(0), cfg, str(tmp_path / "c"), every=4)
     # 4 + 2 generations: one program of 4 generations (the previous version compiled a second one of 2).
@@ -45,10 +45,10 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
         cli.main(argv)
     assert e.value.code == 130
     captured = capsys.readouterr()
-    assert f"interrupted at generation 2; `mqd run --resume --out {tmp_path}` continues" in captured.err
+    assert f"interrupted at generation 2; `mqd run --resume --out={tmp_path}` continues" in captured.err
     assert "Traceback" not in captured.err
     monkeypatch.setattr(progress_lib.Lines, "chunk", chunk)
-    refused(argv, f"holds a checkpoint of this run at generation 2 of 4: `mqd run --resume --out {tmp_path}` continues "
+    refused(argv, f"holds a checkpoint of this run at generation 2 of 4: `mqd run --resume --out={tmp_path}` continues "
                   "it; --overwrite starts afresh, deleting those 2 generations")
     cli.main(["run", "--resume", "--out", str(tmp_path)])  # the saved config: no other flag needed
     out = capsys.readouterr().out
@@ -59,7 +59,7 @@ def test_interrupt_says_where_and_resume_continues_the_counters(tmp_path, capsys
     last = [line for line in out.splitlines() if line.startswith("generation")][-1]
     assert last.startswith("generation    4/4") and f"discarded {sum(metrics['discarded']):6d}" in last
     _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="mqd-paper", max_generations=4, population_size=8,
-                                                     capacity=64,
+                                                     capacity=64, archive_capacity=16,
                                                      algorithm_options=dict(warmup_samples=8, num_batches=2)))
     np.testing.assert_array_equal(metrics["coverage"], whole["coverage"])
 
@@ -136,7 +136,7 @@ def test_a_task_from_an_installed_packages_entry_point(tmp_path, monkeypatch, en
     monkeypatch.syspath_prepend(str(tmp_path))
     assert "entry_reach" in registry.registered_tasks()
     state, _ = run_mqd(jax.random.PRNGKey(0), Config(task="entry_reach", max_generations=2, population_size=8,
-                                                     capacity=64))
+                                                     capacity=64, archive_capacity=16))
     assert int(state.repertoire.count) > 0
 
 

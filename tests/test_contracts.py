@@ -74,7 +74,8 @@ def _run(surrogate=None, rule=None, checks=False):
     emitter = presets.mqd_paper(budgeted=True, warmup_samples=16)
     emitter = dataclasses.replace(emitter, surrogate=surrogate or Linear(), acquisition=rule or Budgeted(4),
                                   checks=checks)
-    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=4)
+    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=4, capacity=64,
+                          archive_capacity=16)
     return jax.block_until_ready(run_mqd(jax.random.PRNGKey(0), cfg))
 
 
@@ -104,6 +105,13 @@ def test_with_checks_a_part_whose_values_break_the_contract_stops_the_run_naming
     assert "Traceback" not in caplog.text and "callback failed" not in caplog.text  # nor logged with one
 
 
+def test_without_checks_a_model_that_predicts_nan_is_a_warning_naming_the_surrogate():
+    from mqd_jax.core.diagnostics import RunWarning
+
+    with pytest.warns(RunWarning, match=r"the model's predictions \(NotFinite\) were not finite in 4 of 4 "):
+        _run(NotFinite())
+
+
 def test_the_checkpointed_runner_a_sweep_s_batch_and_ask_raise_a_broken_part_as_one_line(tmp_path):
     from mqd_jax import ask
     from mqd_jax.core.run import init
@@ -112,7 +120,8 @@ def test_the_checkpointed_runner_a_sweep_s_batch_and_ask_raise_a_broken_part_as_
 
     emitter = dataclasses.replace(presets.mqd_paper(budgeted=True, warmup_samples=16), surrogate=Linear(),
                                   acquisition=Rule("repeated"), checks=True)
-    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=4)
+    cfg = Config.paper_2d(task="obstacle2d", algorithm=emitter, population_size=8, max_generations=4, capacity=64,
+                          archive_capacity=16)
     with pytest.raises(PartFailed, match=r"^Rule.select returned a row more than once: its rows must be distinct$"):
         run_with_checkpoints(jax.random.PRNGKey(0), cfg, str(tmp_path / "ckpt"), every=2)
     with pytest.raises(PartFailed, match=r"^Rule.select returned a row more than once: its rows must be distinct$"):

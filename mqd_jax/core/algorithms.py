@@ -1,7 +1,8 @@
 """Algorithm names: the registry that `Config(algorithm="name")` resolves through, as tasks resolve through
 `mqd_jax.core.registry`.
 
-An algorithm is a function of keyword options that returns an `Emitter` (`mqd_jax.emitters.presets` registers "mqd",
+An algorithm is a function of keyword options that returns an `Emitter` (`mqd_jax.emitters.presets`, loaded
+through the entry point group `mqd_jax.algorithms` before the registry is first read, registers "mqd",
 "mqd-paper", "qd" and "random"; `register(name, function)` adds one). Its options are its keyword parameters,
 their defaults in its signature; `CONTEXT` names those the config fills in itself (`k`: `Config.k`). An
 algorithm may say which of its options Table II sets per column (`table_ii`).
@@ -9,6 +10,8 @@ algorithm may say which of its options Table II sets per column (`table_ii`).
 
 from __future__ import annotations
 
+import functools
+import importlib.metadata
 import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -17,15 +20,30 @@ from mqd_jax.core.emitter import Emitter
 
 # Options that are not the user's to give: the config passes its own.
 CONTEXT = ("k",)
+# Modules that register algorithms when imported (the built-in ones: mqd_jax.emitters.presets), loaded before the
+# registry is first read, as the tasks' entry points are.
+ENTRY_POINT_GROUP = "mqd_jax.algorithms"
 _FUNCTIONS: dict[str, Callable[..., Emitter]] = {}
 _TABLE_II: dict[str, Mapping[str, Mapping[str, Any]]] = {}
+
+
+@functools.cache
+def _load_entry_points() -> None:
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        entry.load()
+
+
+def _functions() -> dict[str, Callable[..., Emitter]]:
+    """The registered algorithms, the entry points' loaded first."""
+    _load_entry_points()
+    return _FUNCTIONS
 
 
 def register(name: str, function: Callable[..., Emitter],
              table_ii: Mapping[str, Mapping[str, Any]] | None = None) -> None:
     """Registers `function` (keyword options -> Emitter) as the algorithm `name`; `table_ii`: {column: options}
     that `Config.paper_2d` / `paper_robot` set. Raises ValueError if `name` is taken."""
-    if name in _FUNCTIONS:
+    if name in _functions():
         raise ValueError(f"algorithm {name!r} is already registered")
     _FUNCTIONS[name] = function
     _TABLE_II[name] = dict(table_ii or {})
@@ -33,12 +51,12 @@ def register(name: str, function: Callable[..., Emitter],
 
 def names() -> tuple[str, ...]:
     """The registered algorithms, in the order they were registered."""
-    return tuple(_FUNCTIONS)
+    return tuple(_functions())
 
 
 def options(name: str) -> dict[str, Any]:
     """{option: default} of the algorithm `name`, without the config's own (`CONTEXT`)."""
-    parameters = inspect.signature(_FUNCTIONS[name]).parameters.values()
+    parameters = inspect.signature(_functions()[name]).parameters.values()
     return {p.name: p.default for p in parameters if p.name not in CONTEXT}
 
 
@@ -81,11 +99,13 @@ def resolved(name: str, given: Mapping[str, Any]) -> dict[str, Any]:
 def build(name: str, given: Mapping[str, Any], k: int) -> Emitter:
     """The emitter of the algorithm `name` with the options `given` (checked: `resolved`) and the run's `k`."""
     settings = resolved(name, given)
-    if "k" in inspect.signature(_FUNCTIONS[name]).parameters:
+    function = _functions()[name]
+    if "k" in inspect.signature(function).parameters:
         settings["k"] = k
-    return _FUNCTIONS[name](**settings)
+    return function(**settings)
 
 
 def table_ii(name: str, column: str) -> dict[str, Any]:
     """The options of Table II's `column` ("2d" or "robot") that the algorithm `name` takes."""
+    _load_entry_points()
     return dict(_TABLE_II[name].get(column, {}))

@@ -5,7 +5,7 @@
 and the `mqd` command line call `warn` on their results; an ask/tell loop can
 call it on its stacked metrics. The counts come from the per-generation metrics
 (see `run_mqd`): `dropped_full`, `out_of_range`, `out_of_box`, `invalid`,
-`evaluations`.
+`evaluations`; and the emitter's own (`Emitter.problems`: M-QD's model predicting NaN).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def problems(metrics: Mapping[str, np.ndarray], cfg: Config, task: Task) -> list
         found.append(f"{label}{total['out_of_box']} of {valid} valid rollouts ended outside the behavior box "
                      f"{task.behavior_low}-{task.behavior_high}: coverage counts only the box and M-QD's model "
                      "cannot predict behaviors outside it; widen the task's behavior box")
-    return found
+    return found + [label + message for message in cfg.emitter.problems(metrics)]
 
 
 def warn(metrics: Mapping[str, np.ndarray], cfg: Config, task: Task) -> None:

@@ -31,11 +31,12 @@ This module holds the protocol; `mqd_jax.emitters.baselines` the paper's baselin
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mqd_jax.core import pytree
 from mqd_jax.core.params import Params
@@ -152,6 +153,12 @@ class Emitter:
     def metrics(self) -> dict[str, Any]:
         """{name: dtype} of the scalars `update` returns (default: none)."""
         return {}
+
+    def problems(self, metrics: Mapping[str, np.ndarray]) -> list[str]:
+        """What went wrong in a run without an error, read from its metrics (numpy arrays [G], or [R, G] for a
+        batch): one message each, which `diagnostics.warn` emits as a `RunWarning` (default: none)."""
+        del metrics
+        return []
 
     def forward_model(self, state: Any, task: Task) -> tuple[Callable[[jax.Array], jax.Array], jax.Array] | None:
         """The emitter's learned model of behavior, as it stands in `state`: (predict, trained), predict mapping

@@ -32,10 +32,12 @@ emitter's.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mqd_jax.core import pytree
 from mqd_jax.core import repertoire as repertoire_lib
@@ -288,6 +290,19 @@ class ModelEmitter(Emitter):
                    **({"model_share": info.from_model.mean(dtype=jnp.float32)} if parts.shared(self.parts) else {})}
         return ModelEmitterState(surrogate=surrogate, inner=inner, evaluations=evaluations, acquisition=rule,
                                  parts=chain), metrics
+
+    def problems(self, metrics: Mapping[str, np.ndarray]) -> list[str]:
+        """A model whose predictions were not finite: `prediction_error` NaN or infinite in a generation with
+        usable rollouts (it is NaN only without any), what a surrogate that predicts NaN does silently unless
+        `checks`."""
+        usable = np.asarray(metrics["evaluations"]) - np.asarray(metrics["invalid"]) > 0
+        broken = usable & ~np.isfinite(np.asarray(metrics["prediction_error"]))
+        if not broken.any():
+            return []
+        return [f"the model's predictions ({type(self.surrogate).__name__}) were not finite in {int(broken.sum())} of "
+                f"{int(usable.sum())} generations with usable rollouts (prediction_error NaN or infinite): its "
+                "choice of candidates is blind; ModelEmitter(checks=True) stops the run at the first such "
+                "prediction, naming the part"]
 
     def metrics(self) -> dict[str, Any]:
         own = {**_METRICS, **({"model_share": jnp.float32} if parts.shared(self.parts) else {}), **self.model.metrics()}

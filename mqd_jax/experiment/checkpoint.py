@@ -41,8 +41,8 @@ from mqd_jax.core import checks, diagnostics, pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import State, check_state, get_task, init, metric_dtypes, run_generations
-from mqd_jax.experiment import folders, migrations
+from mqd_jax.core.run import METRICS, State, check_state, get_task, init, metric_dtypes, run_generations
+from mqd_jax.experiment import folders, interrupts, migrations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
@@ -142,6 +142,46 @@ def _check_fields(path: str, payload: dict[str, Any]) -> None:
                                 f"{[*runs, done]}")
 
 
+def _check_values(path: str, state: State, metrics: Metrics, cfg: Config) -> None:
+    """Refuses (`Refused`, naming the field) a state or metrics that no run makes: a skill count outside 0 to the
+    capacity or a valid mask that is not its prefix, a skill with a non-finite action, behavior or quality, a
+    neighbour index outside the repertoire, a negative count (rollouts, archived skills, coverage balls), metrics
+    of another dtype than a run's (float32, int32), a coverage outside [0, 1] or a negative count metric."""
+    rep, capacity = state.repertoire, cfg.capacity
+    count = np.asarray(rep.count)
+    if ((count < 0) | (count > capacity)).any():
+        wrong = count.min() if (count < 0).any() else count.max()
+        raise Refused(path, f"its state's field 'repertoire.count' holds {wrong} skills, outside 0 to the capacity "
+                            f"{capacity}")
+    prefix = np.arange(capacity) < count[..., None]
+    if not np.array_equal(np.asarray(rep.valid), prefix):
+        raise Refused(path, "its state's field 'repertoire.valid' does not mark the first 'repertoire.count' "
+                            "skills, as a repertoire's does")
+    for name in ("actions", "behaviors", "qualities"):
+        values = np.asarray(getattr(rep, name))
+        finite = np.isfinite(values).reshape(*prefix.shape, -1).all(-1)
+        if (prefix & ~finite).any():
+            raise Refused(path, f"its state's field 'repertoire.{name}' holds a value that is not finite for a skill "
+                                "(no run inserts one)")
+    index = np.asarray(rep.neighbours.index)
+    if ((index < -1) | (index >= capacity)).any():
+        wrong = index.min() if (index < -1).any() else index.max()
+        raise Refused(path, f"its state's field 'repertoire.neighbours.index' holds {wrong}, outside -1 (none) to "
+                            f"{capacity - 1}")
+    for name, value in (("num_evaluations", state.num_evaluations), ("archive.total", state.archive.total),
+                        ("coverage.counts", state.coverage.counts)):
+        if (np.asarray(value) < 0).any():
+            raise Refused(path, f"its state's field {name!r} holds a negative count")
+    for name, value in metrics.items():
+        want = np.dtype(metric_dtypes(cfg)[name])
+        if value.dtype != want:
+            raise Refused(path, f"its metric {name!r} is {value.dtype}, where a run's is {want}")
+        if name == "coverage" and not ((value >= 0) & (value <= 1)).all():
+            raise Refused(path, "its metric 'coverage' holds a value outside [0, 1] (or NaN)")
+        if name in METRICS and want.kind == "i" and (value < 0).any():
+            raise Refused(path, f"its metric {name!r} holds a negative count")
+
+
 def read(path: str) -> dict[str, Any]:
     """The checkpoint's contents (config, key, state, metrics), checksum verified, its fields' types and shapes
     checked (`_check_fields`), older formats converted."""
@@ -202,10 +242,14 @@ def load(path: str, cfg: Config, key: jax.Array, payload: dict[str, Any] | None 
         state = serialization.from_state_dict(template, payload["state"])
     except (KeyError, ValueError) as e:
         raise Refused(path, f"its state does not fit this config ({e})") from e
-    for want, got in zip(jax.tree.leaves(template), jax.tree.leaves(state), strict=True):
-        if want.shape != np.shape(got) or want.dtype != np.asarray(got).dtype:
-            raise Refused(path, f"an array of shape {np.shape(got)} where {want.shape} was expected")
+    for (where, want), got in zip(jax.tree_util.tree_flatten_with_path(template)[0], jax.tree.leaves(state),
+                                  strict=True):
+        got = np.asarray(got)
+        if want.shape != got.shape or want.dtype != got.dtype:
+            raise Refused(path, f"its state's field {jax.tree_util.keystr(where)[1:]!r} is {got.dtype}"
+                                f"{list(got.shape)}, where this config's state has {want.dtype}{list(want.shape)}")
     state = jax.tree.map(lambda want, got: np.asarray(got, want.dtype), template, state)
+    _check_values(path, state, payload["metrics"], cfg)
     metrics = dict(payload["metrics"])
     if metrics:  # metrics a later version added (0.12: max_quality, qd_score; 0.13: insertion_rounds): NaN (-1 for
         done = np.shape(metrics["coverage"])  # counts) for the generations before
@@ -273,13 +317,15 @@ def run_chunks(state: State, metrics: Metrics, cfg: Config, params: Params, ever
                after: Callable[[State, Metrics, Metrics], None] | None = None) -> tuple[State, Metrics]:
     """`state` (with its metrics so far) run on to `cfg.max_generations` in chunks of `every` generations, one
     compiled chunk (`compile_chunk`): after each, `after(state, the metrics so far, the chunk's)`, then
-    `progress.chunk`; `progress` is told of the compilation and closed at the end. Warns like `run_mqd`."""
+    `progress.chunk`, then a Ctrl-C pressed meanwhile is raised (`interrupts.check`, also after compiling);
+    `progress` is told of the compilation and closed at the end. Warns like `run_mqd`."""
     if int(state.generation) < cfg.max_generations:
         if progress is not None:
             progress.compiling()
         step = compile_chunk(state, cfg, params, every)
         if progress is not None:
             progress.compiled()
+    interrupts.check()
     while (done := int(state.generation)) < cfg.max_generations:
         todo = min(every, cfg.max_generations - done)
         with checks.part_failures():
@@ -290,6 +336,7 @@ def run_chunks(state: State, metrics: Metrics, cfg: Config, params: Params, ever
             after(state, metrics, chunk)
         if progress is not None:
             progress.chunk(int(state.generation), chunk)
+        interrupts.check()
     if progress is not None:
         progress.close()
     diagnostics.warn(metrics, cfg, get_task(cfg))

@@ -27,7 +27,6 @@ import json
 import logging
 import math
 import os
-import shlex
 import sys
 import tempfile
 import time
@@ -41,8 +40,8 @@ import numpy as np
 from mqd_jax import adaptation
 from mqd_jax.core import algorithms, registry
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import State, get_task
-from mqd_jax.experiment import checkpoint, folders, migrations, plots, results, sweep
+from mqd_jax.core.run import State, check_size, get_task
+from mqd_jax.experiment import checkpoint, folders, interrupts, migrations, plots, results, shell, sweep
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.provenance import provenance
 from mqd_jax.version import __version__
@@ -237,6 +236,7 @@ def _given(args: argparse.Namespace, flag: str) -> bool:
 def _resumed(args: argparse.Namespace, path: str) -> tuple[Config, int]:
     """The config and seed of the run saved in `args.out` (its manifest, else its checkpoint): what `--resume`
     continues. Flags given must agree with them: refused (ValueError) otherwise, naming each."""
+    hint = shell.command("mqd", "run", "--resume", ("--out", args.out))
     saved = folders.identity(args.out)
     if not (isinstance(saved, dict) and isinstance(saved.get("config"), dict) and is_seed(saved.get("seed"))):
         try:
@@ -259,12 +259,12 @@ def _resumed(args: argparse.Namespace, path: str) -> tuple[Config, int]:
             flags = Config.from_dict({**cfg.to_dict(), **given, "algorithm_options": options})
         except (TypeError, ValueError) as e:
             raise ValueError(f"--resume continues the run saved in {args.out!r} with its own config, which the flags "
-                             f"given contradict ({e}); leave them out: `mqd run --resume --out {args.out}`") from None
+                             f"given contradict ({e}); leave them out: `{hint}`") from None
     differ = folders.differences({**cfg.to_dict(), "seed": saved["seed"]},
                          {**flags.to_dict(), "seed": saved["seed"] if args.seed is None else args.seed})
     if differ:
         raise ValueError(f"--resume continues the run saved in {args.out!r} with its own config and seed, which the "
-                         f"flags given contradict ({differ}); leave them out: `mqd run --resume --out {args.out}`")
+                         f"flags given contradict ({differ}); leave them out: `{hint}`")
     return cfg, saved["seed"]
 
 
@@ -281,7 +281,7 @@ def _run(args: argparse.Namespace) -> None:
         raise ValueError("--resume and --overwrite together: --resume continues the run in the folder, --overwrite "
                          "starts it afresh; give one")
     path = os.path.join(args.out, "checkpoint.msgpack")
-    resume = f"mqd run --resume --out {shlex.quote(args.out)}"
+    resume = shell.command("mqd", "run", "--resume", ("--out", args.out))
     watched = [progress_lib.Progress()]  # the run's progress, once it has one: its `done` generations are saved
 
     def interrupted() -> str:
@@ -289,7 +289,7 @@ def _run(args: argparse.Namespace) -> None:
             return f"interrupted at generation {watched[0].done}; `{resume}` continues from there"
         kept = os.path.lexists(path)
         return ("interrupted before a generation was saved; " +
-                (f"the checkpoint already in {args.out} is kept as it was" if kept else "nothing was saved"))
+                (f"the checkpoint already in {args.out!r} is kept as it was" if kept else "nothing was saved"))
 
     args.interrupted = interrupted
     with folders.lock(args.out) as leftovers:
@@ -377,16 +377,23 @@ def _sweep(args: argparse.Namespace) -> None:
         raise ValueError(f"--algorithm-option {untaken[0]}: none of the algorithms {', '.join(args.algorithms)} "
                          f"takes it (mqd run --help lists each one's options)")
     configs = [_config(args, task=t, algorithm=a) for t in args.tasks for a in args.algorithms]
+    for cfg in configs:  # every size before any key is made: a huge --seeds is refused, not run out of memory
+        seeds = args.seeds or get_task(cfg).paper_seeds
+        try:
+            check_size(cfg, -(-seeds // jax.device_count()))
+        except ValueError as e:
+            raise ValueError(f"{cfg.task} {cfg.algorithm}, {seeds} seeds: {e}, or give fewer --seeds") from None
     batches = [(cfg, np.asarray(sweep.seed_keys(args.seeds or get_task(cfg).paper_seeds))) for cfg in configs]
-    where: list[Any] = ["before the first batch", None]  # where, and the running batch's progress
+    where: list[Any] = ["before the first batch", None, 0]  # where, the running batch's progress, batches in the folder
 
     def interrupted() -> str:
         text = f"interrupted {where[0]}"
+        kept = (f"the {_count(where[2], 'finished batch')} in {args.out!r} are kept" if where[2] else
+                "no batch had finished")
         if where[1] is not None and where[1].done:
             return (f"{text} at generation {where[1].done} of {where[1].total}: its checkpoint keeps them, and the "
-                    f"same command continues this batch from generation {where[1].done}; finished batches are kept "
-                    f"in {args.out}")
-        return f"{text}; finished batches are kept in {args.out}, and the same command continues from there"
+                    f"same command continues this batch from generation {where[1].done}; {kept}")
+        return f"{text}; {kept}" + (", and the same command continues from there" if where[2] else "")
 
     args.interrupted = interrupted
     with folders.lock(args.out) as leftovers:
@@ -408,39 +415,58 @@ def _sweep(args: argparse.Namespace) -> None:
         if clash:  # the tables and figures describe removed runs
             _say_removed(results.remove_derived(args.out), "made of the replaced batches")
         found = [(stem, saved) for stem, saved in found if stem not in clash]
-        planned = {results.stem(args.out, cfg) for cfg, _ in batches}
+        where[2] = len(found)
+        planned = {results.stem(args.out, cfg): (cfg, keys) for cfg, keys in batches}
         for stem, e in damaged.items():
-            if stem in planned:
+            if stem not in planned:
+                print(f"warning: {e}")
+            elif _loads(args.out, stem + results.PART, *planned[stem]):  # killed while it wrote the batch's files
+                print(f"{e}\nits batch is finished from its checkpoint {os.path.basename(stem + results.PART)}")
+            else:
                 kept = folders.set_aside(results.batch_files(stem))
                 print(f"{e}\nits batch is run again; its files are kept as {', '.join(kept)}")
-            else:
-                print(f"warning: {e}")
         folders.plan(args.out, [{"task": cfg.task_name, "algorithm": cfg.algorithm, "seeds": len(keys)}
                                 for cfg, keys in batches])
         for cfg, keys in batches:
             label = f"{cfg.task} {cfg.algorithm}, {len(keys)} seeds: "
             part = results.stem(args.out, cfg) + results.PART
             if results.is_done(found, args.out, cfg, keys):
-                print(f"{label}already in {args.out}, skipped")
+                print(f"{label}already in {args.out!r}, skipped")
                 _say_removed(folders.remove_written(args.out, [glob.escape(os.path.basename(part))]), "finished")
                 continue
             progress = progress_lib.for_output(label, cfg.max_generations, cfg, args.cache_folder, args.cache)
-            where[:] = [f"in {label.rstrip(': ')}", progress]
+            where[:2] = [f"in {label.rstrip(': ')}", progress]
             args.task_now = cfg.task_name
             begun, chunk = _resumed_batch(args, part, cfg, keys, progress)
             start = time.perf_counter()
-            states, metrics = sweep.run_batch(
-                cfg, keys, chunk=chunk, start=begun, progress=progress,
-                on_state=lambda s, m, cfg=cfg, keys=keys, part=part, chunk=chunk: checkpoint.save(
-                    part, s, m, cfg, keys, chunk=chunk))
+            if begun is not None and int(np.asarray(begun[0].generation)[0]) >= cfg.max_generations:
+                states, metrics = begun  # every generation ran: only its files are left to write
+            else:
+                states, metrics = sweep.run_batch(
+                    cfg, keys, chunk=chunk, start=begun, progress=progress,
+                    on_state=lambda s, m, cfg=cfg, keys=keys, part=part, chunk=chunk: checkpoint.save(
+                        part, s, m, cfg, keys, chunk=chunk))
             wall = time.perf_counter() - start
             print(f"{label}done: coverage {metrics['coverage'][:, -1].mean():.3f} +- "
                   f"{metrics['coverage'][:, -1].std():.3f}, {metrics['num_evaluations'][:, -1].mean():.0f} "
                   f"evaluations per run, {wall:.1f} s (compilation included) on {jax.device_count()} device(s)",
                   flush=True)
             results.save_runs(args.out, cfg, keys, states, metrics, wall)
-        where[0] = "while tabulating"
+            where[2] += 1
+        where[:2] = ["while tabulating", None]
         _plot(args.out)
+
+
+def _loads(out: str, part: str, cfg: Config, keys: np.ndarray) -> bool:
+    """Whether the batch checkpoint `part` (mqd-jax's, by the manifest of `out`) loads as a batch of `cfg` and
+    `keys`: a sound part, which a sweep continues (or finishes) and never sets aside."""
+    if not (folders.is_file(part) and os.path.basename(part) in folders.written(out)):
+        return False
+    try:
+        checkpoint.load(part, cfg, keys)
+    except ValueError:
+        return False
+    return True
 
 
 def _resumed_batch(args: argparse.Namespace, part: str, cfg: Config, keys: np.ndarray,
@@ -490,8 +516,8 @@ def _adapt(args: argparse.Namespace) -> None:
             found = {}
         tasks = args.tasks or [t for t, by in results.load_runs(args.dir).items() if "mqd" in by]
         if not tasks:
-            raise ValueError(f"{args.dir!r} holds no M-QD runs to adapt: run `mqd sweep --algorithms mqd --out "
-                             f"{args.dir}` first")
+            raise ValueError(f"{args.dir!r} holds no M-QD runs to adapt: run "
+                             f"`{shell.command('mqd', 'sweep', '--algorithms', 'mqd', ('--out', args.dir))}` first")
         steps = progress_lib.Steps("adapt", len(tasks) * len(adaptation.METHODS), "method")
         for task in tasks:
             cfg, keys, states = results.load_states(args.dir, task)
@@ -571,14 +597,15 @@ def _render(args: argparse.Namespace) -> None:
     if not os.path.isdir(args.dir):
         raise ValueError(f"{args.dir!r} does not exist: give the folder a `mqd run` wrote")
     if folders.kind(args.dir) == "sweep":
-        raise ValueError(f"{args.dir!r} is a folder of `mqd sweep`: `mqd render` takes a folder of `mqd run` (`mqd "
-                         f"plot {args.dir}` draws a sweep's repertoires)")
+        raise ValueError(f"{args.dir!r} is a folder of `mqd sweep`: `mqd render` takes a folder of `mqd run` "
+                         f"(`{shell.command('mqd', 'plot', args.dir)}` draws a sweep's repertoires)")
     files = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
     missing = [f for f in files if not os.path.lexists(f)]
     if missing:
         raise ValueError(f"{missing[0]!r} is missing: {args.dir!r} is not a whole folder of `mqd run` (metrics.json, "
                          "repertoire.npz)")
-    repair = f"the `mqd run` that made it, with --resume --out {args.dir}, writes it again from its checkpoint"
+    repair = (f"the `mqd run` that made it, `{shell.command('mqd', 'run', '--resume', ('--out', args.dir))}`, writes "
+              "it again from its checkpoint")
     saved = folders.read_json(files[0], repair)
     if not isinstance(saved.get("config"), dict):
         raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no config in metrics.json): {repair}")
@@ -781,27 +808,45 @@ def _one_line_warnings() -> Any:
         warnings.formatwarning = own
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser, subparsers = _parser()
+def _arguments(parser: argparse.ArgumentParser, subparsers: dict[str, argparse.ArgumentParser],
+               argv: list[str] | None) -> argparse.Namespace:
+    """The command line's arguments, with what every command reads: the cache, and what an interruption says."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # the subcommand's one line, not the top level's
         subparsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = argv
-    args.cache_folder, args.cache = compilation_cache(getattr(args, "cache", False))
     args.interrupted = lambda: "interrupted"  # run and sweep say where
     args.task_now = None  # the task running (run and sweep set it): what a callback's failure names
-    with _callbacks_caught() as callbacks, _one_line_warnings():
+    args.cache_folder, args.cache = compilation_cache(getattr(args, "cache", False))
+    return args
+
+
+def _say_interrupted(args: argparse.Namespace | None) -> None:
+    """Says where the command was interrupted, in one line, and exits 130."""
+    print(f"\n{args.interrupted() if args else 'interrupted while starting; nothing was written'}", file=sys.stderr)
+    raise SystemExit(130) from None
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The `mqd` command line in this process: exits (SystemExit) 2 with one line for invalid input or a failure,
+    130 with one line on Ctrl-C, wherever it is pressed (`interrupts`)."""
+    args = None
+    with interrupts.latched(), _callbacks_caught() as callbacks, _one_line_warnings():
         try:
+            parser, subparsers = _parser()
+            args = _arguments(parser, subparsers, argv)
             _COMMANDS[args.command](args)
+            interrupts.check()  # a press whose KeyboardInterrupt was lost after the last chunk
         except ValueError as e:  # invalid configuration or input: one line that says what, no traceback
-            print(f"mqd {args.command}: error: {e}", file=sys.stderr)
+            print(f"mqd {args.command if args else ''}: error: {e}", file=sys.stderr)
             raise SystemExit(2) from None
         except KeyboardInterrupt:
-            print(f"\n{args.interrupted()}", file=sys.stderr)
-            raise SystemExit(130) from None
+            _say_interrupted(args)
         except Exception as e:  # a file that cannot be written, a task's own failure: one line too
-            if os.environ.get(TRACEBACK_ENV):
+            if interrupts.pressed():  # an error Ctrl-C caused (an extension's import, a callback): say that
+                _say_interrupted(args)
+            if os.environ.get(TRACEBACK_ENV) or args is None:
                 raise
             where = args.interrupted().replace("interrupted", "stopped", 1)
             what = _one_line(e)

@@ -83,6 +83,7 @@ LOCK = ".mqd.lock"
 TMP_SUFFIX = ".mqdtmp"
 CHECKSUM = "sha256"  # the key (JSON) or array (npz) that holds a file's checksum
 MAX_JSON = 2**30  # the largest JSON file read (bytes): a sweep of 25 seeds x 10,000 generations is under 200 MB
+MAX_DEPTH = 64  # the deepest nesting of lists and dicts read from a JSON file (mqd-jax's nest a few levels)
 NPZ_SLACK = 2**24  # bytes an npz may hold beyond the arrays its config implies (its `meta` text)
 # Folders pinned by `lock`: absolute path as given -> the descriptor every file operation in it goes through.
 _PINNED: dict[str, int] = {}
@@ -224,6 +225,8 @@ def _strict(x: Any, where: str = "", infinite: set[str] | None = None) -> Any:
     if isinstance(x, np.ndarray):
         return _strict(x.tolist(), where, infinite)
     x = x.item() if isinstance(x, np.generic) else x
+    if not (x is None or isinstance(x, (bool, int, float, str))):
+        raise ValueError(f"{where or 'the value'} is a {type(x).__name__}, which JSON cannot hold")
     if isinstance(x, float) and x != x:
         return None
     if isinstance(x, float) and x in (math.inf, -math.inf):
@@ -258,30 +261,49 @@ def write_json(path: str, payload: Mapping[str, Any]) -> None:
     if CHECKSUM in payload:
         raise ValueError(f"{path!r}: the key {CHECKSUM!r} is the file's checksum; give the payload another key")
     infinite: set[str] = set()
-    data = _as_read(dict(payload), infinite)
+    try:
+        data = _as_read(dict(payload), infinite)
+    except ValueError as e:
+        raise ValueError(f"{path!r} cannot be written: {e}") from None
     if infinite:
         warnings.warn(f"{path}: {', '.join(sorted(infinite))} hold infinite values, written as the strings "
                       '"Infinity"/"-Infinity" (JSON has no number for them)', InfiniteValues, stacklevel=2)
     write_atomically(path, json.dumps({**data, CHECKSUM: _json_digest(data)}).encode())
 
 
+def _depth(x: Any) -> int:
+    """How deeply lists and dicts nest in `x` (a parsed JSON value), found without recursion."""
+    deepest, todo = 0, [(x, 1)]
+    while todo:
+        x, level = todo.pop()
+        if isinstance(x, (dict, list)):
+            deepest = max(deepest, level)
+            todo.extend((v, level + 1) for v in (x.values() if isinstance(x, dict) else x))
+    return deepest
+
+
 def read_json(path: str, repair: str) -> dict[str, Any]:
     """The dict `write_json` wrote to `path`, its checksum verified (and removed).
 
     Raises `Damaged` (naming the file, what is wrong and `repair`, the way to repair it) if the file cannot be read
-    or parsed (NaN and Infinity literals are not JSON; nesting too deep to read), is not a dict, carries no checksum
-    or does not match it.
+    or parsed (NaN and Infinity literals are not JSON; nesting deeper than `MAX_DEPTH`), is not a dict, carries no
+    checksum or does not match it.
     """
     try:
         data = json.loads(read_bytes(path, MAX_JSON), parse_constant=_not_json)
-    except RecursionError as e:
+        if not (isinstance(data, dict) and isinstance(data.get(CHECKSUM), str)):
+            raise Damaged(path, "carries no checksum (not written by mqd-jax 0.9.0 or later)", repair)
+        if _depth(data) > MAX_DEPTH:
+            raise Damaged(path, f"is nested more than {MAX_DEPTH} levels deep (mqd-jax writes no such file)", repair)
+        digest = data.pop(CHECKSUM)
+        sealed = _json_digest(data) == digest
+    except RecursionError as e:  # in the parse or in the digest's encoding
         raise Damaged(path, "cannot be read (nested too deep)", repair) from e
+    except Damaged:
+        raise
     except (OSError, ValueError) as e:  # ValueError: JSONDecodeError and UnicodeDecodeError
         raise Damaged(path, f"cannot be read ({type(e).__name__}: {e})", repair) from e
-    if not (isinstance(data, dict) and isinstance(data.get(CHECKSUM), str)):
-        raise Damaged(path, "carries no checksum (not written by mqd-jax 0.9.0 or later)", repair)
-    digest = data.pop(CHECKSUM)
-    if _json_digest(data) != digest:
+    if not sealed:
         raise Damaged(path, "does not match its checksum: it was altered or damaged", repair)
     return data
 
@@ -376,7 +398,8 @@ def _check_path(folder: str) -> None:
                          "(with its files' names); give a shorter --out")
 
 
-def _make_folder(folder: str, create: bool) -> None:
+def _make_folder(folder: str, create: bool) -> list[str]:
+    """Makes `folder` (if `create`) after checking its path; returns the folders it made, outermost first."""
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ValueError(f"{folder!r} is a file, not a folder: give another --out")
     if os.path.islink(folder) and not os.path.exists(folder):
@@ -385,7 +408,21 @@ def _make_folder(folder: str, create: bool) -> None:
     if not create and not os.path.isdir(folder):
         raise ValueError(f"{folder!r} does not exist: give a folder that `mqd sweep` wrote")
     _check_path(folder)
+    made, path = [], os.path.abspath(folder)
+    while not os.path.lexists(path):
+        made.insert(0, path)
+        path = os.path.dirname(path)
     os.makedirs(folder, exist_ok=True)
+    return made
+
+
+def _unclaim(folder: str, pin: int) -> None:
+    """Removes the manifest of `folder` (pinned) if it lists no file the folder holds: what a command that failed
+    or was interrupted before writing anything leaves of its claim."""
+    with contextlib.suppress(ValueError, OSError):
+        saved = _manifest(folder)
+        if saved is not None and not written(folder, saved):
+            os.unlink(MANIFEST, dir_fd=pin)
 
 
 def _open_lock(folder: int, shown: str) -> int:
@@ -453,10 +490,14 @@ def lock(folder: str, create: bool = True) -> Iterator[list[str]]:
     Yields the leftover temporary files of killed writers it removed. The lock file is removed when the lock is
     released; if the folder no longer sits at its path then, a line on standard error says where it is.
 
+    A command that fails or is interrupted (an exception leaves the block) before it has written a file leaves the
+    folder as it found it: a manifest the block made that lists no file there is removed, and so are the folders
+    `lock` made, if empty.
+
     Raises ValueError if another process holds it, if the folder is missing and not `create`, or if the lock
     file's path is anything but a regular file (a link is never followed).
     """
-    _make_folder(folder, create)
+    made = _make_folder(folder, create)
     key = os.path.abspath(folder)
     if key in _PINNED:
         raise ValueError(f"{folder!r} is already locked by this process")
@@ -467,6 +508,7 @@ def lock(folder: str, create: bool = True) -> Iterator[list[str]]:
         os.close(pin)
         raise
     _PINNED[key] = pin
+    failed, claimed = False, lexists(os.path.join(folder, MANIFEST))
     try:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
@@ -474,7 +516,12 @@ def lock(folder: str, create: bool = True) -> Iterator[list[str]]:
         for leftover in leftovers:  # no other writer can be writing them: we hold the lock
             remove(leftover)
         yield leftovers
+    except BaseException:
+        failed = True
+        raise
     finally:
+        if failed and not claimed:
+            _unclaim(folder, pin)
         del _PINNED[key]
         with contextlib.suppress(OSError):  # still ours (we hold its lock): nobody else can be using it
             os.unlink(LOCK, dir_fd=pin)
@@ -490,6 +537,10 @@ def lock(folder: str, create: bool = True) -> Iterator[list[str]]:
                   f"folder it started in, {'now at ' + repr(now) if now else 'which is no longer at that path'} "
                   f"({folder!r} now holds {'nothing' if here is None else 'another folder'}, left untouched)",
                   file=sys.stderr)
+        elif failed:
+            for path in reversed(made):  # only empty ones: rmdir removes nothing else
+                with contextlib.suppress(OSError):
+                    os.rmdir(path)
         os.close(pin)
 
 

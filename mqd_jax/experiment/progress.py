@@ -10,6 +10,7 @@ metrics)` after each chunk of generations and `close()` at the end. `run(key, cf
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -22,6 +23,7 @@ import numpy as np
 
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.run import init
+from mqd_jax.experiment import folders
 from mqd_jax.experiment.checkpoint import run_chunks
 
 
@@ -191,6 +193,7 @@ class Steps:
 
 # The compile times the command line remembers, per config, in the compilation cache's folder.
 COMPILE_TIMES = "compile_times.json"
+MAX_TIMES = 2**20  # the largest record of compile times read (bytes): a line per config
 
 
 def _config_key(cfg: Config) -> str:
@@ -203,9 +206,8 @@ def last_compile(folder: str | None, cfg: Config) -> float | None:
     if folder is None:
         return None
     try:
-        with open(os.path.join(folder, COMPILE_TIMES)) as f:
-            value = json.load(f).get(_config_key(cfg))
-    except (OSError, ValueError, AttributeError):
+        value = json.loads(folders.read_bytes(os.path.join(folder, COMPILE_TIMES), MAX_TIMES)).get(_config_key(cfg))
+    except (OSError, ValueError, AttributeError, RecursionError):
         return None
     return float(value) if isinstance(value, int | float) else None
 
@@ -217,18 +219,13 @@ def remember_compile(folder: str | None, cfg: Config, seconds: float) -> None:
         return
     path = os.path.join(folder, COMPILE_TIMES)
     try:
-        with open(path) as f:
-            times = json.load(f)
+        times = json.loads(folders.read_bytes(path, MAX_TIMES))
         times = times if isinstance(times, dict) else {}
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         times = {}
     times[_config_key(cfg)] = round(seconds, 2)
-    try:
-        with open(path + ".tmp", "w") as f:
-            json.dump(times, f)
-        os.replace(path + ".tmp", path)
-    except OSError:
-        pass
+    with contextlib.suppress(OSError, ValueError):  # never through a link, nor into anything but a regular file
+        folders.write_atomically(path, json.dumps(times).encode())
 
 
 def run(key: jax.Array, cfg: Config, params: Any = None, chunk: int | None = None,

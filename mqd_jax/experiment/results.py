@@ -41,7 +41,6 @@ import glob
 import hashlib
 import json
 import os
-import shlex
 from collections.abc import Callable
 from typing import Any
 
@@ -51,7 +50,7 @@ import numpy as np
 from mqd_jax.core import algorithms, coverage, registry
 from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, coverage_method, coverage_points, get_task
-from mqd_jax.experiment import checkpoint, folders, migrations
+from mqd_jax.experiment import checkpoint, folders, migrations, shell
 from mqd_jax.experiment.folders import (
     Damaged,
     differences,
@@ -128,7 +127,7 @@ def implementation(cfg: Config) -> dict[str, str]:
 def repair(out: str, stem: str) -> str:
     """How to repair a damaged batch `stem` of the folder `out`: the command that re-runs it (shell-quoted)."""
     task, _, algorithm = os.path.basename(stem).rpartition("_")
-    command = shlex.join(["mqd", "sweep", "--tasks", task, "--algorithms", algorithm, "--out", out])
+    command = shell.command("mqd", "sweep", "--tasks", task, "--algorithms", algorithm, ("--out", out))
     return f"`{command}` with the flags that made it re-runs it (a damaged batch is re-run)"
 
 
@@ -383,8 +382,8 @@ def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     """The config, seed keys [S, 2] and final M-QD states (leading axis S) of `task` in `out`."""
     stem = _stem(out, task, "mqd")
     if not folders.lexists(stem + ".json"):
-        raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run `mqd sweep --tasks {task} --out {out}` with "
-                         "M-QD first")
+        raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run "
+                         f"`{shell.command('mqd', 'sweep', '--tasks', task, ('--out', out))}` with M-QD first")
     saved = _read_batch(out, stem)
     cfg, keys = Config.from_dict(saved["config"]), np.asarray(saved["keys"], np.uint32)
     state, _ = checkpoint.load(stem + ".msgpack", cfg, keys)

@@ -36,6 +36,7 @@ from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
 from mqd_jax.core.run import State, check_size, get_task, init, run_generations
+from mqd_jax.experiment import interrupts
 
 Metrics = dict[str, np.ndarray]
 
@@ -128,7 +129,8 @@ def run_batch(
         checkpoint of the batch holds.
       progress: told where the batch starts, of the compilation and of each chunk (generations done, that
         chunk's metrics, each [R, chunk]) (`mqd_jax.experiment.progress`: `Bar` for a bar, any `Progress` for a
-        hook; None: nothing).
+        hook; None: nothing). A Ctrl-C pressed inside `interrupts.latched` stops the batch after the compilation or
+        the chunk it came in (`interrupts.check`).
 
     Returns:
       The final states (every array with a leading [R] axis, on the devices)
@@ -170,6 +172,7 @@ def run_batch(
     step = _chunk.lower(states, params, jnp.int32(chunk), cfg, chunk).compile()
     if progress is not None:
         progress.compiled()
+    interrupts.check()
     while (done := sum(p["coverage"].shape[1] for p in parts)) < cfg.max_generations:
         todo = min(chunk, cfg.max_generations - done)
         with checks.part_failures():
@@ -180,6 +183,7 @@ def run_batch(
                      {k: np.concatenate([p[k] for p in parts], axis=1) for k in parts[-1]})
         if progress is not None:
             progress.chunk(done + todo, parts[-1])
+        interrupts.check()
     if progress is not None:
         progress.close()
     states = jax.tree.map(lambda x: x[:runs], states)

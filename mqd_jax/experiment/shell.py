@@ -1,0 +1,23 @@
+"""Commands printed as hints (`mqd run --resume --out=...`), written so that they run as printed when pasted into
+a POSIX shell: every word quoted, a flag's value joined to it with `=` (an --out of `-r` is not taken for a
+flag), and a word with a newline or another control character in bash's `$'...'` quoting, so that the hint
+stays on one line."""
+
+from __future__ import annotations
+
+import shlex
+
+
+def word(text: str) -> str:
+    """`text` as one shell word on one line."""
+    if text.isprintable():
+        return shlex.quote(text)
+    escaped = "".join(c if c.isprintable() and c not in "'\\" else
+                      "\\" + c if c in "'\\" else
+                      f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}" for c in text)
+    return f"$'{escaped}'"
+
+
+def command(*words: str | tuple[str, str]) -> str:
+    """The command of `words`: a str is a word, a (flag, value) pair the word `flag=value`."""
+    return " ".join(f"{w[0]}={word(w[1])}" if isinstance(w, tuple) else word(w) for w in words)
