@@ -10,7 +10,7 @@ from flax import serialization
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.run import get_task
-from mqd_jax.experiment import checkpoint, cli, folders, results
+from mqd_jax.experiment import checkpoint, cli, files, folders, results
 
 CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),
              population_size=16, max_generations=12, capacity=256, archive_capacity=64)
@@ -200,13 +200,13 @@ def test_folders_of_earlier_versions_resume_tabulate_and_adapt(tmp_path, capsys,
     no gate; their files' checksums hold."""
     shutil.copytree(DATA / version, tmp_path / "old")
     run, sweep = tmp_path / "old" / "run", tmp_path / "old" / "sweep"
-    saved = folders.read_json(str(run / "metrics.json"), "")
+    saved = files.read_json(str(run / "metrics.json"), "")
     flags = ["--generations", "3", "--population", "8", "--capacity", "32", "--archive-capacity", "16",
              "--coverage-resolution", "16", "-O", "warmup_samples=8", "num_batches=2", "hidden_size=4",
              "features=False", "gate=False"]  # what their "mqd" was (0.11's takes both)
     cli.main(["run", "--algorithm", "mqd", *flags, "--out", str(run), "--resume"])
     assert "resuming at generation 3 of 3" in capsys.readouterr().out  # the whole run, nothing to compute
-    now = folders.read_json(str(run / "metrics.json"), "")["metrics"]
+    now = files.read_json(str(run / "metrics.json"), "")["metrics"]
     assert {name: now[name] for name in saved["metrics"]} == saved["metrics"]
     assert now["qd_score"] == now["max_quality"] == [None] * 3  # 0.12's metrics: not measured before
     cfg, _, states = results.load_states(str(sweep), "obstacle2d")

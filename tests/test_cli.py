@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mqd_jax import Config, run_mqd
-from mqd_jax.experiment import cli
+from mqd_jax.experiment import cli, flags
 
 
 def test_mqd_run_in_chunks_equals_one_run(tmp_path, capsys):
@@ -65,23 +65,24 @@ def test_mqd_run_warns_when_niches_are_dropped(tmp_path):
 
 def test_every_config_field_has_a_flag_options_are_named_and_presets_apply():
     parser = argparse.ArgumentParser()
-    cli._add_config_flags(parser)
+    flags.add_config_flags(parser)
     args = parser.parse_args(["--preset", "paper-robot", "--algorithm-option", "t_nov=0.05", "budgeted=True",
                               "--algorithm", "mqd-paper", "--population", "50", "-O", "anchor_free=x"])
     assert args.algorithm_options == [("t_nov", 0.05), ("budgeted", True), ("anchor_free", "x")]
     args.algorithm_options.pop()
-    cfg = cli._config(args)
+    cfg = flags.config_from_flags(args)
     assert cfg == Config.paper_robot(algorithm_options={"t_nov": 0.05, "budgeted": True}, algorithm="mqd-paper",
                                      population_size=50)
     assert cfg.options["hidden_size"] == 64  # Table II's robot column
-    assert cli._config(parser.parse_args([])) == Config()
-    assert cli._config(parser.parse_args([]), defaults={"max_generations": 100}) == Config(max_generations=100)
+    assert flags.config_from_flags(parser.parse_args([])) == Config()
+    assert flags.config_from_flags(parser.parse_args([]), defaults={"max_generations": 100}) == \
+        Config(max_generations=100)
     # `mqd sweep`'s preset "auto" is the paper's column for each task; each algorithm takes the options it has.
     auto = argparse.ArgumentParser()
-    cli._add_config_flags(auto, skip=cli._PER_TASK, preset="auto")
+    flags.add_config_flags(auto, skip=flags.PER_TASK, preset="auto")
     args = auto.parse_args(["--t-dist", "0.01", "-O", "t_nov=0.05"])
-    assert cli._config(args, task="place", algorithm="qd") == Config.paper_robot(task="place", t_dist=0.01)
-    assert cli._config(args, task="object2d", algorithm="mqd-paper") == Config.paper_2d(
+    assert flags.config_from_flags(args, task="place", algorithm="qd") == Config.paper_robot(task="place", t_dist=0.01)
+    assert flags.config_from_flags(args, task="object2d", algorithm="mqd-paper") == Config.paper_2d(
         task="object2d", t_dist=0.01, algorithm="mqd-paper", algorithm_options={"t_nov": 0.05})
     with pytest.raises(SystemExit):
         auto.parse_args(["--task", "place"])  # per task: --tasks

@@ -9,7 +9,7 @@ import pytest
 
 from mqd_jax import Budgeted, Config, IsoLine, ModelEmitter, adaptation
 from mqd_jax.core import algorithms, registry
-from mqd_jax.experiment import folders
+from mqd_jax.experiment import files
 from mqd_jax.experiment.migrations import config_from
 
 DATA = pathlib.Path(__file__).resolve().parent / "data" / "v0.9.0"
@@ -109,7 +109,7 @@ def test_a_task_made_with_options_round_trips_through_json():
 def test_configs_of_version_0_9_read_with_their_settings_as_algorithm_options():
     """A real file of 0.9.0 (tests/data/v0.9.0): its preset's settings were fields of the config, and its "mqd"
     took neither the task's features nor a gate (0.11's defaults)."""
-    old = folders.read_json(str(DATA / "run" / "metrics.json"), "")["config"]
+    old = files.read_json(str(DATA / "run" / "metrics.json"), "")["config"]
     assert old["warmup_samples"] == 8 and "algorithm_options" not in old
     cfg = config_from(old)
     assert cfg == Config(algorithm="mqd", max_generations=3, population_size=8, capacity=32, archive_capacity=16,

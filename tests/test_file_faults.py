@@ -28,7 +28,8 @@ import pytest
 
 from mqd_jax import Config
 from mqd_jax.core import algorithms
-from mqd_jax.experiment import cli, folders, results
+from mqd_jax.experiment import cli, files, flags, folders, manifest, results
+from mqd_jax.experiment import sweep as sweep_lib
 
 RUN_FLAGS = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--algorithm",
              "random"]
@@ -85,11 +86,11 @@ def older_version(path):
     """The file as an mqd-jax before 0.9.0 wrote it: no checksum (a checkpoint: a format from the future)."""
     if path.suffix == ".json":
         saved = json.loads(path.read_text())
-        saved.pop(folders.CHECKSUM)
+        saved.pop(files.CHECKSUM)
         path.write_text(json.dumps(saved))
     elif path.suffix == ".npz":
         with np.load(path) as f:
-            arrays = {k: f[k] for k in f.files if k != folders.CHECKSUM}
+            arrays = {k: f[k] for k in f.files if k != files.CHECKSUM}
         np.savez_compressed(path, **arrays)
     else:
         from flax import serialization
@@ -116,7 +117,7 @@ FILES = [
     ("sweep", "obstacle2d_qd.npz", ["plot"]),
     ("sweep", "obstacle2d_mqd.msgpack", ["plot"]),
     ("sweep", "obstacle2d_mqd.json", ["adapt", "--goals", "3"]),
-    ("sweep", folders.MANIFEST, None),  # read by the sweep that continues the folder
+    ("sweep", manifest.MANIFEST, None),  # read by the sweep that continues the folder
     ("run", "metrics.json", ["render"]),
     ("run", "repertoire.npz", ["render"]),
     ("run", "checkpoint.msgpack", None),  # read by `mqd run --resume`
@@ -149,7 +150,7 @@ def test_a_damaged_file_is_refused_naming_it_and_never_deleted(made, tmp_path, c
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1, err  # one line
-    if fault is delete and name == folders.MANIFEST:
+    if fault is delete and name == manifest.MANIFEST:
         assert "results without a valid manifest" in err and "--overwrite" in err
     elif fault is delete and name == "checkpoint.msgpack":
         assert f"--resume: {str(folder)!r} holds no checkpoint" in err
@@ -211,7 +212,7 @@ def test_a_batch_without_the_machine_names_the_file_and_what_lacks(made, tmp_pat
     folder = tmp_path / "sweep"
     shutil.copytree(made / "sweep", folder)
     path = str(folder / "obstacle2d_qd.json")
-    saved = folders.read_json(path, "")
+    saved = files.read_json(path, "")
     del saved["machine"]
     folders.write_json(path, saved)
     refused(["plot", str(folder)], f"{path!r} lacks 'machine' (not a complete batch of `mqd sweep`): `mqd sweep "
@@ -230,14 +231,14 @@ def copy(made, tmp_path):
     return make
 
 
-def manifest(folder):
-    return folders.read_json(str(folder / folders.MANIFEST), "")
+def saved_manifest(folder):
+    return files.read_json(str(folder / manifest.MANIFEST), "")
 
 
 def forge_manifest(folder, **changes):
     """Rewrites the folder's manifest with `changes`, its checksum recomputed (anyone can: it proves integrity, not
     origin)."""
-    folders.write_json(str(folder / folders.MANIFEST), {**manifest(folder), **changes})
+    folders.write_json(str(folder / manifest.MANIFEST), {**saved_manifest(folder), **changes})
 
 
 def one_line_error(capsys, argv, match):
@@ -262,22 +263,22 @@ def test_a_manifest_naming_anything_but_its_own_files_is_damaged_and_nothing_out
     (folder / "sub").mkdir()
     (folder / "link.json").symlink_to(victim)
     entry = str(victim) if entry == "ABSOLUTE" else entry
-    forge_manifest(folder, written=[*manifest(folder)["written"], entry])
+    forge_manifest(folder, written=[*saved_manifest(folder)["written"], entry])
     err = one_line_error(capsys, ["run", *RUN_FLAGS, "--seed", "1", "--out", str(folder)], f"lists {entry!r}")
     assert "--overwrite" in err
     cli.main(["run", *RUN_FLAGS, "--seed", "1", "--out", str(folder), "--overwrite"])  # repairs: a new manifest
     assert victim.read_text() == "precious" and (folder / "sub").is_dir() and (folder / "link.json").is_symlink()
-    assert manifest(folder)["identity"]["seed"] == 1 and entry not in manifest(folder)["written"]
+    assert saved_manifest(folder)["identity"]["seed"] == 1 and entry not in saved_manifest(folder)["written"]
 
 
 def test_a_sweep_over_a_forged_run_manifest_removes_nothing_outside(copy, tmp_path, capsys):
     folder = copy("run")
     victim = tmp_path / "in" / "victim.txt"
     victim.write_text("precious")
-    forge_manifest(folder, written=[*manifest(folder)["written"], "../victim.txt"])
+    forge_manifest(folder, written=[*saved_manifest(folder)["written"], "../victim.txt"])
     one_line_error(capsys, [*TINY_SWEEP, "--algorithms", "qd", "--out", str(folder)], "'../victim.txt'")
     cli.main([*TINY_SWEEP, "--algorithms", "qd", "--out", str(folder), "--overwrite"])
-    assert manifest(folder)["kind"] == "sweep" and (folder / "obstacle2d_qd.json").exists()
+    assert saved_manifest(folder)["kind"] == "sweep" and (folder / "obstacle2d_qd.json").exists()
     assert victim.read_text() == "precious"
 
 
@@ -289,7 +290,7 @@ def test_the_lock_file_is_never_followed_through_a_link(tmp_path, link):
     folder.mkdir()
     if link != "dangling":
         target.write_text("precious")
-    (os.link if link == "hard" else os.symlink)(target, folder / folders.LOCK)
+    (os.link if link == "hard" else os.symlink)(target, folder / manifest.LOCK)
     with pytest.raises(ValueError, match=r"symbolic link|other hard links"), folders.lock(str(folder)):
         pass
     assert (target.read_text() == "precious") if link != "dangling" else not target.exists()
@@ -297,15 +298,15 @@ def test_the_lock_file_is_never_followed_through_a_link(tmp_path, link):
 
 def test_the_lock_file_is_removed_when_the_command_ends(tmp_path, capsys):
     with folders.lock(str(tmp_path)):
-        assert (tmp_path / folders.LOCK).read_text() == f"{os.getpid()}\n"
-    assert not (tmp_path / folders.LOCK).exists()
+        assert (tmp_path / manifest.LOCK).read_text() == f"{os.getpid()}\n"
+    assert not (tmp_path / manifest.LOCK).exists()
     one_line_error(capsys, ["plot", str(tmp_path)], "holds no sweep results")
     assert os.listdir(tmp_path) == []
 
 
 HOLD_LOCK = textwrap.dedent("""
     import sys, time
-    from mqd_jax.experiment import folders
+    from mqd_jax.experiment import files, folders, manifest
     with folders.lock(sys.argv[1]):
         print("locked", flush=True)
         time.sleep(600)
@@ -327,7 +328,7 @@ def test_render_never_replaces_a_file_it_did_not_write(copy, tmp_path, capsys):
     assert (sweep / "obstacle2d_qd.json").read_bytes() == before and mine.read_bytes() == b"my own"
     assert (sweep / "mine.gif").read_bytes() == b"my own"
     cli.main(["render", str(run), "--out", str(sweep / "skill.gif"), "--width", "40", "--height", "40"])
-    assert "skill.gif" in manifest(sweep)["written"]
+    assert "skill.gif" in saved_manifest(sweep)["written"]
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(sweep)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
@@ -353,7 +354,7 @@ def test_plot_and_adapt_keep_the_users_files_named_like_tables(copy, capsys):
     assert all((folder / name).read_bytes() == b"my own" for name in mine) and not ours.exists()
     assert (folder / "table1.md").exists() and (folder / "fig2_obstacle2d.png").exists()
     # A table the manifest does not list (the user's, named as mqd-jax names its own) is never replaced.
-    forge_manifest(folder, written=[n for n in manifest(folder)["written"] if n != "table1.md"])
+    forge_manifest(folder, written=[n for n in saved_manifest(folder)["written"] if n != "table1.md"])
     (folder / "table1.md").write_text("my table")
     one_line_error(capsys, ["plot", str(folder)], "table1.md' is not written by mqd-jax here")
     assert (folder / "table1.md").read_text() == "my table"
@@ -383,13 +384,13 @@ def test_task_names_that_map_to_one_file_name_are_refused(tmp_path, capsys, monk
 
 def test_duplicated_tasks_and_algorithms_run_once(tmp_path, capsys, monkeypatch):
     batches = []  # each batch run, with what the manifest planned when it began
-    monkeypatch.setattr(cli.sweep, "run_batch", lambda cfg, *a, **k: batches.append(
-        (cfg.task, cfg.algorithm, manifest(tmp_path)["planned"])) or (_ for _ in ()).throw(KeyboardInterrupt))
+    monkeypatch.setattr(sweep_lib, "run_batch", lambda cfg, *a, **k: batches.append(
+        (cfg.task, cfg.algorithm, saved_manifest(tmp_path)["planned"])) or (_ for _ in ()).throw(KeyboardInterrupt))
     with pytest.raises(SystemExit):
         cli.main([*TINY_SWEEP, "--tasks", "obstacle2d", "obstacle2d", "--algorithms", "qd", "qd", "--out",
                   str(tmp_path)])
     assert batches == [("obstacle2d", "qd", [{"task": "obstacle2d", "algorithm": "qd", "seeds": 2}])]
-    assert not tmp_path.joinpath(folders.MANIFEST).exists()  # interrupted before writing: the folder as it was
+    assert not tmp_path.joinpath(manifest.MANIFEST).exists()  # interrupted before writing: the folder as it was
 
 
 # 6. JSON with NaN/Infinity literals, or nested too deep, is damaged.
@@ -399,17 +400,17 @@ def test_duplicated_tasks_and_algorithms_run_once(tmp_path, capsys, monkeypatch)
 def test_json_that_is_not_json_is_damaged_naming_the_file(tmp_path, text):
     path = tmp_path / "mqd.json"
     path.write_text(text)
-    with pytest.raises(folders.Damaged, match=re.escape(repr(str(path))) + " cannot be read"):
-        folders.read_json(str(path), "repair")
+    with pytest.raises(files.Damaged, match=re.escape(repr(str(path))) + " cannot be read"):
+        files.read_json(str(path), "repair")
 
 
 def test_a_manifest_with_nan_is_repaired_by_overwrite_and_a_batch_with_nan_is_set_aside(copy, capsys):
     run = copy("run")
-    text = (run / folders.MANIFEST).read_text()
-    (run / folders.MANIFEST).write_text(text.replace('"kind": "run"', '"kind": NaN'))
+    text = (run / manifest.MANIFEST).read_text()
+    (run / manifest.MANIFEST).write_text(text.replace('"kind": "run"', '"kind": NaN'))
     one_line_error(capsys, ["run", *RUN_FLAGS, "--out", str(run)], "the literal NaN is not JSON")
     cli.main(["run", *RUN_FLAGS, "--seed", "1", "--out", str(run), "--overwrite"])
-    assert manifest(run)["kind"] == "run"
+    assert saved_manifest(run)["kind"] == "run"
     sweep = copy("sweep")
     batch = sweep / "obstacle2d_qd.json"
     batch.write_text(batch.read_text().replace('"wall_s": ', '"wall_s": Infinity, "was": '))
@@ -424,14 +425,14 @@ def test_finite_qualities_whose_sum_overflows_are_written_with_a_warning(tmp_pat
     import plugin_tasks
 
     registered("huge", lambda: plugin_tasks.make_reach(scale=2.1e-38))  # qualities down to -3e38: finite
-    with pytest.warns(folders.InfiniteValues, match="metrics.qd_score") as caught:
+    with pytest.warns(files.InfiniteValues, match="metrics.qd_score") as caught:
         cli.main(["run", "--task", "huge", *RUN_FLAGS, "--out", str(tmp_path)])
     assert any("metrics.mean_quality" in str(w.message) for w in caught)
-    saved = folders.read_json(str(tmp_path / "metrics.json"), "")
+    saved = files.read_json(str(tmp_path / "metrics.json"), "")
     qd_score = np.array(saved["metrics"]["qd_score"], dtype=float)
     assert np.isneginf(qd_score[-1]) and "-Infinity" in saved["metrics"]["qd_score"]
     assert (tmp_path / "repertoire.npz").exists()
-    assert np.isfinite(folders.read_npz(str(tmp_path / "repertoire.npz"), "")["qualities"]).all()
+    assert np.isfinite(files.read_npz(str(tmp_path / "repertoire.npz"), "")["qualities"]).all()
 
 
 # 8. A batch whose every rollout failed is marked; batches a sweep planned but did not write are named.
@@ -446,10 +447,10 @@ def test_tables_mark_runs_whose_every_rollout_failed_and_name_missing_batches(ma
     text = "\n".join(results.tables(runs))
     assert text.count("[every rollout failed in 1 of 2 runs]") == 2  # coverage and mean quality
     assert "Missing" not in text
-    assert manifest(made / "sweep")["planned"] == [{"task": "obstacle2d", "algorithm": a, "seeds": 2}
+    assert saved_manifest(made / "sweep")["planned"] == [{"task": "obstacle2d", "algorithm": a, "seeds": 2}
                                                    for a in ("mqd", "qd")]
     folder = copy("sweep")
-    folders.plan(str(folder), [{"task": "obstacle2d", "algorithm": "random", "seeds": 2}])  # an interrupted sweep
+    manifest.plan(str(folder), [{"task": "obstacle2d", "algorithm": "random", "seeds": 2}])  # an interrupted sweep
     cli.main(["plot", str(folder)])
     assert (folder / "table1.md").read_text().startswith("Missing: obstacle2d RANDOM: planned by `mqd sweep`")
 
@@ -545,9 +546,9 @@ def test_a_mistyped_flag_is_one_line_that_suggests_the_flag(capsys):
 
 def test_run_takes_the_tasks_column_and_its_help_says_so(capsys):
     parser, commands = cli._parser()
-    robot = cli._config(parser.parse_args(["run", "--task", "hexapod_omni"]), defaults=cli._RUN_DEFAULTS)
+    robot = flags.config_from_flags(parser.parse_args(["run", "--task", "hexapod_omni"]), defaults=flags.RUN_DEFAULTS)
     assert robot == Config.paper("hexapod_omni", max_generations=100)
-    flat = cli._config(parser.parse_args(["run"]), defaults=cli._RUN_DEFAULTS)
+    flat = flags.config_from_flags(parser.parse_args(["run"]), defaults=flags.RUN_DEFAULTS)
     assert flat == Config.paper_2d(max_generations=100)
     text = " ".join(commands["run"].format_help().split())
     assert "--max-generations 100 unless given (default: auto)" in text
@@ -634,7 +635,7 @@ def within(seconds):
     ("sweep", "obstacle2d_qd.json", ["plot", "{folder}"]),
     ("sweep", "obstacle2d_mqd.msgpack", ["adapt", "{folder}", "--goals", "3"]),
     ("fresh", "metrics.json", ["run", *RUN_FLAGS, "--out", "{folder}"]),
-    ("fresh", folders.MANIFEST, ["run", *RUN_FLAGS, "--out", "{folder}"]),
+    ("fresh", manifest.MANIFEST, ["run", *RUN_FLAGS, "--out", "{folder}"]),
 ], ids=lambda x: x if isinstance(x, str) else None)
 def test_a_fifo_named_like_a_result_is_refused_at_once_naming_it(made, tmp_path, capsys, kind, name, argv):
     folder = tmp_path / kind
@@ -646,10 +647,10 @@ def test_a_fifo_named_like_a_result_is_refused_at_once_naming_it(made, tmp_path,
     os.mkfifo(folder / name)
     with within(60):
         err = one_line_error(capsys, [a.format(folder=folder) for a in argv],
-                             f"{name} (a FIFO)" if kind == "fresh" and name != folders.MANIFEST
+                             f"{name} (a FIFO)" if kind == "fresh" and name != manifest.MANIFEST
                              else repr(str(folder / name)))
     assert "a FIFO" in err
-    assert stat.S_ISFIFO(os.lstat(folder / name).st_mode) and not (folder / folders.LOCK).exists()
+    assert stat.S_ISFIFO(os.lstat(folder / name).st_mode) and not (folder / manifest.LOCK).exists()
 
 
 # [trust-4] 5. Reads are bounded by what the config implies: nothing past it is inflated or allocated.

@@ -1,6 +1,6 @@
 """Files that parse, carry a correct checksum and still say something no run makes are refused, naming the field;
 a sweep killed between a batch's files finishes it from its checkpoint; hints run as printed; sizes are checked
-before anything is allocated (`checkpoint._check_values`, `folders.read_json`, `shell`)."""
+before anything is allocated (`checkpoint._check_values`, `files.read_json`, `shell`)."""
 
 import hashlib
 import json
@@ -13,7 +13,8 @@ import pytest
 from flax import serialization
 
 from mqd_jax import Config
-from mqd_jax.experiment import checkpoint, cli, folders, progress, results, shell
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, progress, results, shell
+from mqd_jax.experiment import sweep as sweep_lib
 
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--algorithm",
         "qd", "--task", "obstacle2d"]
@@ -128,15 +129,15 @@ def test_a_sealed_manifest_nested_too_deep_is_damaged_naming_it(tmp_path, capsys
     sys.setrecursionlimit(10_000)  # to seal it here
     try:
         data = {"kind": "run", "identity": {"config": json.loads("[" * depth + "]" * depth)}, "written": []}
-        text = json.dumps({**data, folders.CHECKSUM: folders._json_digest(data)})
+        text = json.dumps({**data, files.CHECKSUM: files.json_digest(data)})
     finally:
         sys.setrecursionlimit(limit)
-    (tmp_path / folders.MANIFEST).write_text(text)
+    (tmp_path / manifest.MANIFEST).write_text(text)
     with pytest.raises(SystemExit) as e:
         cli.main(["run", *TINY, "--out", str(tmp_path)])
     err = capsys.readouterr().err
     assert e.value.code == 2 and err.count("\n") == 1, err
-    assert repr(str(tmp_path / folders.MANIFEST)) in err and "nested more than 64 levels deep" in err
+    assert repr(str(tmp_path / manifest.MANIFEST)) in err and "nested more than 64 levels deep" in err
 
 
 def test_a_sweep_killed_between_a_batch_s_files_finishes_it_from_its_checkpoint(tmp_path, capsys, monkeypatch):
@@ -156,7 +157,7 @@ def test_a_sweep_killed_between_a_batch_s_files_finishes_it_from_its_checkpoint(
     monkeypatch.setattr(results, "write_json", write)
     npz = np.load(tmp_path / "obstacle2d_qd.npz")
     assert not (tmp_path / "obstacle2d_qd.json").exists() and (tmp_path / ("obstacle2d_qd" + results.PART)).exists()
-    monkeypatch.setattr(cli.sweep, "run_batch", lambda *a, **k: pytest.fail("a finished batch was run again"))
+    monkeypatch.setattr(sweep_lib, "run_batch", lambda *a, **k: pytest.fail("a finished batch was run again"))
     capsys.readouterr()
     cli.main(argv)
     out = capsys.readouterr().out
@@ -168,7 +169,7 @@ def test_a_sweep_killed_between_a_batch_s_files_finishes_it_from_its_checkpoint(
 
 
 def test_a_billion_seeds_are_refused_in_one_line_before_a_key_is_made(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(cli.sweep, "seed_keys", lambda *a: pytest.fail("seed keys made before the size check"))
+    monkeypatch.setattr(sweep_lib, "seed_keys", lambda *a: pytest.fail("seed keys made before the size check"))
     with pytest.raises(SystemExit) as e:
         cli.main(["sweep", "--tasks", "obstacle2d", "--algorithms", "qd", "--seeds", "1000000000", "--out",
                   str(tmp_path / "sweep")])

@@ -7,7 +7,7 @@ import pytest
 from envs import arena2d
 from mqd_jax import Config
 from mqd_jax.core import registry
-from mqd_jax.experiment import cli, folders
+from mqd_jax.experiment import cli, folders, manifest
 
 
 def test_a_2d_action_cut_at_a_time_gives_the_position_at_that_time():
@@ -70,5 +70,5 @@ def test_render_prints_rounded_numbers_counts_one_skill_and_names_a_sweep_folder
     refused(["render", str(tmp_path), "--index", "1"], "the repertoire holds 1 skill (0 to 0)")
     sweep = tmp_path / "sweep"
     sweep.mkdir()
-    monkeypatch.setattr(folders, "kind", lambda folder: "sweep" if folder == str(sweep) else None)
+    monkeypatch.setattr(manifest, "kind", lambda folder: "sweep" if folder == str(sweep) else None)
     refused(["render", str(sweep)], "is a folder of `mqd sweep`: `mqd render` takes a folder of `mqd run`")

@@ -20,7 +20,7 @@ from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import diagnostics, registry
 from mqd_jax.core.config import check_params
 from mqd_jax.core.run import init
-from mqd_jax.experiment import checkpoint, cli, folders, provenance, results
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, provenance, results
 from mqd_jax.experiment.sweep import grid, param_names, run_batch, seed_keys
 
 
@@ -68,8 +68,8 @@ def test_every_run_file_records_config_seed_versions_and_revision(tmp_path, tiny
         from PIL import Image
 
         assert json.loads(Image.open(tmp_path / "run.png").text["Description"])["config"] == cfg
-    manifest = json.loads((tmp_path / folders.MANIFEST).read_text())
-    assert manifest["kind"] == "run" and manifest["identity"] == {"config": cfg, "seed": 7}
+    owner = json.loads((tmp_path / manifest.MANIFEST).read_text())
+    assert owner["kind"] == "run" and owner["identity"] == {"config": cfg, "seed": 7}
 
 
 def test_the_machine_names_its_cpu_and_what_makes_it_round_otherwise(tmp_path, monkeypatch):
@@ -130,7 +130,7 @@ def test_tables_refuse_a_folder_whose_batches_were_mixed_by_hand(tmp_path):
     table = (tmp_path / "table1.md").read_text()
     assert "(paper" not in table and "shown only beside runs with Table II's settings" in table
     path = str(tmp_path / "obstacle2d_random.json")
-    saved = folders.read_json(path, "")
+    saved = files.read_json(path, "")
     saved["config"]["t_dist"] = 0.03
     folders.write_json(path, saved)  # a sound file of other runs, as another sweep would write it
     with pytest.raises(ValueError, match=r"mixes runs that cannot be compared.*t_dist: saved 0\.03, now 0\.02"):
@@ -141,7 +141,7 @@ def test_batches_need_agree_only_on_the_options_both_presets_take(tmp_path):
     """A QD batch sits beside M-QD batches of any model settings (QD takes none); two model presets must agree on
     the options both take (hidden size), not on those one of them has alone (ensemble size, t_nov)."""
     sweep(tmp_path, "--algorithms", "qd", "--seeds", "2")
-    qd = folders.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
+    qd = files.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
     cfg = Config(max_generations=3, population_size=8, capacity=64, archive_capacity=16)
     checkpoint.save(str(tmp_path / "obstacle2d_mqd.msgpack"), init(jax.random.PRNGKey(0), cfg), {}, cfg,
                     jax.random.PRNGKey(0))
@@ -186,7 +186,7 @@ def test_adaptation_of_replaced_mqd_runs_is_left_out_and_tables_are_remade(tmp_p
 def test_saving_a_batch_removes_the_tables_made_before_it_and_only_those(tmp_path):
     made = ["table1.md", "adaptation.md", "fig2_obstacle2d.png", "fig3_adaptation_error.png"]
     with folders.lock(str(tmp_path)):
-        folders.claim(str(tmp_path), "sweep", {}, results.files(), False)
+        folders.claim(str(tmp_path), "sweep", {}, results.patterns(), False)
         for name in made:
             folders.write_atomically(str(tmp_path / name), b"made from earlier results")
     (tmp_path / "fig2_mine.png").write_text("the user's, named like a figure")
@@ -202,7 +202,7 @@ def test_saving_a_batch_removes_the_tables_made_before_it_and_only_those(tmp_pat
 
 HOLD_LOCK = textwrap.dedent("""
     import sys, time
-    from mqd_jax.experiment import folders
+    from mqd_jax.experiment import files, folders, manifest
     with folders.lock(sys.argv[1]):
         print("locked", flush=True)
         time.sleep(600)

@@ -13,7 +13,7 @@ import pytest
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.run import init
-from mqd_jax.experiment import checkpoint, cli, folders, results
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, results
 from mqd_jax.experiment import progress as progress_lib
 
 TINY = ["--generations", "4", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--chunk", "2",
@@ -72,11 +72,11 @@ def test_a_folder_swapped_mid_run_receives_nothing_and_the_run_says_where_it_wro
     assert sorted(os.listdir(out)) == ["metrics.json", "run.png"]  # not a byte of the run there
     assert (out / "metrics.json").read_text() == "the user's metrics"
     assert (out / "run.png").read_bytes() == b"the user's picture"
-    saved = folders.read_json(str(moved / "metrics.json"), "")
+    saved = files.read_json(str(moved / "metrics.json"), "")
     _, whole = run_mqd(jax.random.PRNGKey(0), Config(algorithm="random", max_generations=4, population_size=8,
                                                      capacity=64, archive_capacity=16))
     np.testing.assert_array_equal(saved["metrics"]["coverage"], whole["coverage"])
-    assert folders.LOCK not in os.listdir(moved) and folders.LOCK not in os.listdir(out)
+    assert manifest.LOCK not in os.listdir(moved) and manifest.LOCK not in os.listdir(out)
     assert "was moved or replaced while this command ran" in err and f"now at {str(moved)!r}" in err
 
 
@@ -105,7 +105,7 @@ def test_overwrite_never_removes_what_mqd_jax_cannot_prove_it_wrote(tmp_path, ca
     assert sorted(os.listdir(sweep_out)) == ["fig2_mine.png", "table1.md"]
     # What mqd-jax wrote carries its provenance, figures and tables included: without the manifest, it is proved so.
     cli.main(["run", *TINY, "--out", str(tmp_path / "ours")])
-    os.remove(tmp_path / "ours" / folders.MANIFEST)
+    os.remove(tmp_path / "ours" / manifest.MANIFEST)
     capsys.readouterr()
     cli.main(["run", *TINY, "--generations", "2", "--overwrite", "--out", str(tmp_path / "ours")])
     assert "--overwrite: removed checkpoint.msgpack, metrics.json, repertoire.npz, run.png" in capsys.readouterr().out
@@ -171,7 +171,7 @@ def test_resume_needs_no_flags_and_refuses_flags_that_disagree(tmp_path, capsys,
     assert "pass --overwrite to replace them: it deletes checkpoint.msgpack; its checkpoint holds 2 of 4 " \
            "generations" in err
     cli.main(["run", "--resume", "--out", out])
-    saved = folders.read_json(os.path.join(out, "metrics.json"), "")
+    saved = files.read_json(os.path.join(out, "metrics.json"), "")
     assert saved["seed"] == 3 and saved["config"]["max_generations"] == 4
     _, whole = run_mqd(jax.random.PRNGKey(3), Config(algorithm="random", max_generations=4, population_size=8,
                                                      capacity=64, archive_capacity=16))
@@ -234,10 +234,10 @@ def test_a_bad_count_is_one_line_without_the_usage(argv, capsys):
 
 def test_json_and_markdown_written_by_mqd_jax_prove_themselves(tmp_path):
     results.write_markdown(["| a |"], str(tmp_path / "table1.md"), show=False)
-    assert folders.carries_provenance(str(tmp_path / "table1.md"))
+    assert manifest.carries_provenance(str(tmp_path / "table1.md"))
     (tmp_path / "mine.md").write_text("| a |\n\n<!-- mqd-jax: not json -->\n")
     (tmp_path / "fifo.md").unlink(missing_ok=True)
     os.mkfifo(tmp_path / "fifo.md")
-    assert not folders.carries_provenance(str(tmp_path / "mine.md"))
-    assert not folders.carries_provenance(str(tmp_path / "fifo.md"))  # refused at once, not read
-    assert json.loads((tmp_path / "table1.md").read_text().splitlines()[-1][len(folders.MARK):-4])["provenance"]
+    assert not manifest.carries_provenance(str(tmp_path / "mine.md"))
+    assert not manifest.carries_provenance(str(tmp_path / "fifo.md"))  # refused at once, not read
+    assert json.loads((tmp_path / "table1.md").read_text().splitlines()[-1][len(manifest.MARK):-4])["provenance"]

@@ -19,7 +19,7 @@ import mqd_jax
 from mqd_jax import Config, Task
 from mqd_jax.core import registry
 from mqd_jax.core.task import BEHAVIOR_DIMS
-from mqd_jax.experiment import checkpoint, cli, folders, plots, provenance, results
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, plots, provenance, results
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16"]
@@ -80,7 +80,7 @@ def test_a_plugin_named_like_a_built_in_is_an_error_naming_both(tmp_path, monkey
 
 def test_results_record_the_implementation_and_tables_refuse_to_mix_them(tmp_path, capsys, replaced, refused):
     cli.main(sweep_argv(tmp_path))
-    saved = folders.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
+    saved = files.read_json(str(tmp_path / "obstacle2d_qd.json"), "")
     assert saved["implementation"] == {"mqd_jax": mqd_jax.__version__, "task": registry.source("obstacle2d")}
     import plugin_tasks
 
@@ -117,7 +117,7 @@ def test_the_version_has_one_place():
 def test_a_batch_of_another_version_is_not_reused(tmp_path, capsys, refused):
     cli.main(sweep_argv(tmp_path))
     path = str(tmp_path / "obstacle2d_qd.json")
-    saved = folders.read_json(path, "")
+    saved = files.read_json(path, "")
     saved["implementation"]["mqd_jax"] = "0.8.0"
     folders.write_json(path, saved)  # sound: as version 0.8.0 would have written it
     before = digest(tmp_path)
@@ -125,7 +125,7 @@ def test_a_batch_of_another_version_is_not_reused(tmp_path, capsys, refused):
     assert digest(tmp_path) == before
     cli.main(sweep_argv(tmp_path, "--rerun-stale"))
     assert "stale (another implementation): removed obstacle2d_qd.json" in capsys.readouterr().out
-    assert folders.read_json(path, "")["implementation"]["mqd_jax"] == mqd_jax.__version__
+    assert files.read_json(path, "")["implementation"]["mqd_jax"] == mqd_jax.__version__
 
 
 # 4. --overwrite removes only what mqd-jax wrote, tables and figures included, and lists it.
@@ -136,7 +136,7 @@ def test_overwrite_removes_only_the_files_mqd_jax_wrote_and_lists_them(tmp_path,
     np.savez(tmp_path / "raw_data.npz", x=np.arange(3))
     (tmp_path / "fig2_mine.png").write_bytes(b"my figure")  # named like a figure, but not written by mqd-jax
     mine = {n: digest(tmp_path)[n] for n in ("lab_notes.json", "raw_data.npz", "fig2_mine.png")}
-    ours = set(folders.written(str(tmp_path)))
+    ours = set(manifest.written(str(tmp_path)))
     figures = {"fig2_obstacle2d.png"} if importlib.util.find_spec("matplotlib") else set()  # the plot extra's
     assert {"obstacle2d_qd.json", "obstacle2d_qd.npz", "table1.md", *figures} <= ours
     capsys.readouterr()
@@ -173,7 +173,7 @@ def test_starting_afresh_over_a_checkpoint_is_refused_with_the_command_that_resu
     refused([*argv, "--resume", "--overwrite"], "--resume and --overwrite together")
     assert digest(tmp_path) == before and err.count("\n") == 1
     # Without its manifest (an older folder): still never deleted by --resume --overwrite.
-    (tmp_path / folders.MANIFEST).unlink()
+    (tmp_path / manifest.MANIFEST).unlink()
     refused([*argv, "--resume", "--overwrite"], "--resume and --overwrite together")
     assert (tmp_path / "checkpoint.msgpack").exists()
     cli.main([*argv, "--overwrite"])  # said on purpose: starts afresh
@@ -288,7 +288,7 @@ def test_json_checksums_survive_what_json_does_to_keys_and_numbers(tmp_path):
     path = str(tmp_path / "x.json")
     payload = {"b": {10: 1.0, 9: float("nan")}, "a": (np.float32(0.1), np.int64(3)), "c": 1e-320}
     folders.write_json(path, payload)
-    assert folders.read_json(path, "") == {"b": {"10": 1.0, "9": None}, "a": [float(np.float32(0.1)), 3],
+    assert files.read_json(path, "") == {"b": {"10": 1.0, "9": None}, "a": [float(np.float32(0.1)), 3],
                                            "c": 1e-320}
     with pytest.raises(ValueError, match="the key 'sha256' is the file's checksum"):
         folders.write_json(path, {"sha256": 1})

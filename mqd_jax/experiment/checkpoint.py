@@ -42,7 +42,7 @@ from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
 from mqd_jax.core.run import METRICS, State, check_state, get_task, init, metric_dtypes, run_generations
-from mqd_jax.experiment import folders, interrupts, migrations
+from mqd_jax.experiment import files, interrupts, migrations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance
 
@@ -186,8 +186,8 @@ def read(path: str) -> dict[str, Any]:
     """The checkpoint's contents (config, key, state, metrics), checksum verified, its fields' types and shapes
     checked (`_check_fields`), older formats converted."""
     try:
-        payload: Any = _restore(path, folders.read_bytes(path))
-    except (OSError, folders.NotAFile) as e:
+        payload: Any = _restore(path, files.read_bytes(path))
+    except (OSError, files.NotAFile) as e:
         raise Refused(path, f"cannot read it ({e})") from e
     if not isinstance(payload, dict) or payload.get("format") not in range(1, FORMAT + 1):
         raise Refused(path, f"not an mqd-jax checkpoint of format 1 to {FORMAT}")
@@ -297,7 +297,7 @@ def run_with_checkpoints(
         raise ValueError(f"every={every!r} is invalid: expected an int >= 1")
     params = cfg.params() if params is None else params
     check_params(params, cfg)
-    if resume and folders.lexists(path):
+    if resume and files.lexists(path):
         state, metrics = load(path, cfg, key)
     else:
         state, metrics = init(key, cfg), {}

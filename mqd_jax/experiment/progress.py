@@ -23,7 +23,7 @@ import numpy as np
 
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.run import init
-from mqd_jax.experiment import folders
+from mqd_jax.experiment import files, folders
 from mqd_jax.experiment.checkpoint import run_chunks
 
 
@@ -206,7 +206,7 @@ def last_compile(folder: str | None, cfg: Config) -> float | None:
     if folder is None:
         return None
     try:
-        value = json.loads(folders.read_bytes(os.path.join(folder, COMPILE_TIMES), MAX_TIMES)).get(_config_key(cfg))
+        value = json.loads(files.read_bytes(os.path.join(folder, COMPILE_TIMES), MAX_TIMES)).get(_config_key(cfg))
     except (OSError, ValueError, AttributeError, RecursionError):
         return None
     return float(value) if isinstance(value, int | float) else None
@@ -219,7 +219,7 @@ def remember_compile(folder: str | None, cfg: Config, seconds: float) -> None:
         return
     path = os.path.join(folder, COMPILE_TIMES)
     try:
-        times = json.loads(folders.read_bytes(path, MAX_TIMES))
+        times = json.loads(files.read_bytes(path, MAX_TIMES))
         times = times if isinstance(times, dict) else {}
     except (OSError, ValueError, RecursionError):
         times = {}

@@ -50,17 +50,10 @@ import numpy as np
 from mqd_jax.core import algorithms, coverage, registry
 from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, coverage_method, coverage_points, get_task
-from mqd_jax.experiment import checkpoint, folders, migrations, shell
-from mqd_jax.experiment.folders import (
-    Damaged,
-    differences,
-    read_json,
-    read_npz,
-    remove_written,
-    write_atomically,
-    write_json,
-    write_npz,
-)
+from mqd_jax.experiment import checkpoint, files, manifest, migrations, shell
+from mqd_jax.experiment.files import Damaged, read_json, read_npz
+from mqd_jax.experiment.folders import differences, write_atomically, write_json, write_npz
+from mqd_jax.experiment.manifest import remove_written
 from mqd_jax.experiment.provenance import machine, provenance
 from mqd_jax.experiment.stats import mann_whitney
 from mqd_jax.version import __version__
@@ -82,7 +75,7 @@ def _batch_patterns(task: str = "*") -> list[str]:
             for ext in ("json", "npz")]
 
 
-def files() -> tuple[str, ...]:
+def patterns() -> tuple[str, ...]:
     """The files a sweep folder holds (glob patterns, for `folders.claim`) and those made from them."""
     return (*_batch_patterns(), "*_mqd.msgpack", *(f"*_{a}{PART}" for a in algorithms.names()), ADAPTATION,
             *DERIVED)
@@ -94,12 +87,12 @@ PART = ".part.msgpack"  # a running batch's checkpoint: `<task>_<algorithm>.part
 def write_markdown(lines: list[str], path: str, show: bool = True) -> None:
     """Writes a markdown report to `path` atomically (creating its folder unless it is a locked one), and prints
     it if `show`. Its last line is an HTML comment (invisible where markdown is shown) with mqd-jax's provenance
-    (`folders.MARK`): what proves the file mqd-jax's in a folder without a manifest."""
+    (`manifest.MARK`): what proves the file mqd-jax's in a folder without a manifest."""
     text = "\n".join(lines)
     if show:
         print(text)
-    folders.make_folder(os.path.dirname(path) or ".")
-    mark = folders.MARK + json.dumps({"provenance": provenance()}) + " -->"
+    files.make_folder(os.path.dirname(path) or ".")
+    mark = manifest.MARK + json.dumps({"provenance": provenance()}) + " -->"
     write_atomically(path, (text + "\n\n" + mark + "\n").encode())
 
 
@@ -133,17 +126,17 @@ def repair(out: str, stem: str) -> str:
 
 def missing(out: str) -> list[tuple[str, str]]:
     """(task, algorithm) of each batch a `mqd sweep` planned in `out` (its manifest) that is not there."""
-    return [(e["task"], e["algorithm"]) for e in folders.planned(out)
+    return [(e["task"], e["algorithm"]) for e in manifest.planned(out)
             if isinstance(e.get("task"), str) and isinstance(e.get("algorithm"), str)
-            and not folders.lexists(_stem(out, e["task"], e["algorithm"]) + ".json")]
+            and not files.lexists(_stem(out, e["task"], e["algorithm"]) + ".json")]
 
 
 def npz_bytes(cfg: Config, runs: int = 1) -> int:
     """The most bytes the npz of `runs` final repertoires of `cfg` may hold (float32 actions, behaviors and
-    qualities of `capacity` skills, a count per run, and `folders.NPZ_SLACK` for its meta text): what a read of one
+    qualities of `capacity` skills, a count per run, and `files.NPZ_SLACK` for its meta text): what a read of one
     allocates at most."""
     task = get_task(cfg)
-    return runs * (cfg.capacity * (task.action_dim + task.behavior_dim + 1) + 1) * 8 + folders.NPZ_SLACK
+    return runs * (cfg.capacity * (task.action_dim + task.behavior_dim + 1) + 1) * 8 + files.NPZ_SLACK
 
 
 def _batch_config(saved: dict[str, Any], path: str, fix: str) -> Config:
@@ -166,7 +159,7 @@ def _read_batch(out: str, stem: str) -> dict[str, Any]:
     if not (isinstance(saved["config"], dict) and isinstance(saved["keys"], list)):
         raise Damaged(stem + ".json", "holds a config or keys of the wrong type", fix)
     cfg = _batch_config(saved, stem + ".json", fix)
-    if not folders.lexists(stem + ".npz"):
+    if not files.lexists(stem + ".npz"):
         raise Damaged(stem + ".npz", "is missing", fix)
     arrays = read_npz(stem + ".npz", fix, npz_bytes(cfg, len(saved["keys"])))
     if "meta" not in arrays or json.loads(str(arrays["meta"])).get("keys") != saved["keys"]:
@@ -185,7 +178,7 @@ def scan(out: str, task: str = "*") -> tuple[list[tuple[str, dict[str, Any]]], d
     of the damaged ones (a file unreadable, missing, altered, or without checksum). Reads and verifies every file
     of them: scan once, and pass the batches on (`conflicts`, `is_done`)."""
     found, damaged = [], {}
-    names = {n for n in folders.listdir(out) for pattern in _batch_patterns(task) if fnmatch.fnmatchcase(n, pattern)}
+    names = {n for n in files.listdir(out) for pattern in _batch_patterns(task) if fnmatch.fnmatchcase(n, pattern)}
     for stem in sorted({os.path.join(out, n.rsplit(".", 1)[0]) for n in names}, key=lambda s: s + ".json"):
         try:
             found.append((stem, _read_batch(out, stem)))
@@ -253,7 +246,7 @@ def describe(clash: dict[str, Clash]) -> str:
 def batch_files(stem: str) -> list[str]:
     """The files of the batch `stem` that the folder's manifest lists as mqd-jax's (JSON, npz, M-QD states, the
     running batch's checkpoint): never a user's file of such a name."""
-    ours = set(folders.written(os.path.dirname(stem) or "."))
+    ours = set(manifest.written(os.path.dirname(stem) or "."))
     return [stem + ext for ext in (".json", ".npz", ".msgpack", PART) if os.path.basename(stem + ext) in ours]
 
 
@@ -262,7 +255,7 @@ def remove_batches(stems: list[str]) -> list[str]:
     removed M-QD runs turn stale."""
     removed = [p for stem in stems for p in batch_files(stem)]
     for path in removed:
-        folders.remove(path)
+        files.remove(path)
     return removed
 
 
@@ -295,7 +288,7 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
     clash = conflicts(scan(out, cfg.task_name)[0], [(cfg, keys)])
     if clash:
         raise ValueError(f"{out!r} refused: {describe(clash)}")
-    folders.make_folder(out)
+    files.make_folder(out)
     remove_derived(out)
     path = stem(out, cfg)
     meta = {"config": cfg.to_dict(), "keys": np.asarray(keys).tolist(), "implementation": implementation(cfg),
@@ -308,7 +301,7 @@ def save_runs(out: str, cfg: Config, keys: np.ndarray, states: State, metrics: d
         checkpoint.save(path + ".msgpack", states, metrics, cfg, keys)
     # The JSON last: a batch without it is not complete (`scan` reports it damaged, and a sweep runs it again).
     write_json(path + ".json", {**meta, "wall_s": wall_s, "machine": machine(), "metrics": metrics})
-    folders.remove_written(out, [glob.escape(os.path.basename(path) + PART)])  # the batch is whole: its checkpoint goes
+    remove_written(out, [glob.escape(os.path.basename(path) + PART)])  # the batch is whole: its checkpoint goes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -381,7 +374,7 @@ def load_runs(out: str) -> dict[str, dict[str, Runs]]:
 def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
     """The config, seed keys [S, 2] and final M-QD states (leading axis S) of `task` in `out`."""
     stem = _stem(out, task, "mqd")
-    if not folders.lexists(stem + ".json"):
+    if not files.lexists(stem + ".json"):
         raise ValueError(f"{out!r} has no M-QD runs of {task!r}: run "
                          f"`{shell.command('mqd', 'sweep', '--tasks', task, ('--out', out))}` with M-QD first")
     saved = _read_batch(out, stem)
@@ -392,13 +385,13 @@ def load_states(out: str, task: str) -> tuple[Config, np.ndarray, State]:
 
 def source(out: str, task: str) -> str:
     """The SHA-256 of `task`'s final M-QD states in `out`: what an adaptation result was computed from."""
-    return hashlib.sha256(folders.read_bytes(_stem(out, task, "mqd") + ".msgpack")).hexdigest()
+    return hashlib.sha256(files.read_bytes(_stem(out, task, "mqd") + ".msgpack")).hexdigest()
 
 
 def read_adaptation(out: str) -> dict[str, Any]:
     """The contents of `out`'s adaptation.json ({} if none); raises `Damaged` for a damaged one."""
     path = os.path.join(out, ADAPTATION)
-    return read_json(path, f"`mqd adapt {out}` (every task) writes it anew") if folders.lexists(path) else {}
+    return read_json(path, f"`mqd adapt {out}` (every task) writes it anew") if files.lexists(path) else {}
 
 
 def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
@@ -409,7 +402,7 @@ def adaptation(out: str) -> tuple[dict[str, Any], list[str]]:
     """
     current, stale = {}, []
     for task, entry in read_adaptation(out).items():
-        fresh = (isinstance(entry, dict) and folders.is_file(_stem(out, task, "mqd") + ".msgpack")
+        fresh = (isinstance(entry, dict) and files.is_file(_stem(out, task, "mqd") + ".msgpack")
                  and entry.get("source") == source(out, task))
         if fresh:
             current[task] = entry["methods"]
