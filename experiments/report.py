@@ -12,7 +12,7 @@ import numpy as np
 
 from mqd_jax.experiment.plots import pyplot
 from mqd_jax.experiment.provenance import machine
-from mqd_jax.experiment.results import write_markdown as write
+from mqd_jax.experiment.tables import write_markdown as write
 
 __all__ = ["coverage_at", "machine", "median_ms", "probe_arguments", "pyplot", "write"]
 

@@ -28,7 +28,7 @@ import pytest
 
 from mqd_jax import Config
 from mqd_jax.core import algorithms
-from mqd_jax.experiment import cli, files, flags, folders, manifest, results
+from mqd_jax.experiment import cli, files, flags, folders, manifest, results, tables
 from mqd_jax.experiment import sweep as sweep_lib
 
 RUN_FLAGS = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--algorithm",
@@ -444,7 +444,7 @@ def test_tables_mark_runs_whose_every_rollout_failed_and_name_missing_batches(ma
     failed["invalid"][0] = 0  # ... but for the first seed's first generation
     runs = {"obstacle2d": {"mqd": by["mqd"], "qd": results.Runs(qd.cfg, qd.keys, qd.wall_s, qd.machine, failed,
                                                                qd.count, qd.behaviors, qd.qualities)}}
-    text = "\n".join(results.tables(runs))
+    text = "\n".join(tables.table_one(runs))
     assert text.count("[every rollout failed in 1 of 2 runs]") == 2  # coverage and mean quality
     assert "Missing" not in text
     assert saved_manifest(made / "sweep")["planned"] == [{"task": "obstacle2d", "algorithm": a, "seeds": 2}

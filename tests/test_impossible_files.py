@@ -13,7 +13,7 @@ import pytest
 from flax import serialization
 
 from mqd_jax import Config
-from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, progress, results, shell
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, messages, progress, results
 from mqd_jax.experiment import sweep as sweep_lib
 
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--algorithm",
@@ -180,7 +180,7 @@ def test_a_billion_seeds_are_refused_in_one_line_before_a_key_is_made(tmp_path, 
 
 @pytest.mark.parametrize("folder", ["-r", "my\nrun", "it's here", "tab\there"])
 def test_a_hint_runs_as_printed_on_one_line(folder):
-    hint = shell.command("mqd", "run", "--resume", ("--out", folder))
+    hint = messages.command("mqd", "run", "--resume", ("--out", folder))
     assert "\n" not in hint
     words = subprocess.run(["bash", "-c", f"printf '%s\\0' {hint}"], capture_output=True, check=True).stdout
     assert words.decode().split("\0")[:-1] == ["mqd", "run", "--resume", f"--out={folder}"]

@@ -13,7 +13,7 @@ import pytest
 
 from mqd_jax import Config
 from mqd_jax.core import registry
-from mqd_jax.experiment import cli, results, sweep
+from mqd_jax.experiment import cli, results, sweep, tables
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.stats import mann_whitney
 from mqd_jax.experiment.sweep import run_batch, seed_keys
@@ -239,5 +239,5 @@ def test_table_one_shows_the_papers_values_beside_its_settings_only():
 
     by_alg = {"mqd-paper": runs(Config.paper("obstacle2d", algorithm="mqd-paper")),
               "qd": runs(Config.paper("obstacle2d", algorithm="qd", max_generations=30))}
-    table = "\n".join(results.tables({"obstacle2d": by_alg}))
+    table = "\n".join(tables.table_one({"obstacle2d": by_alg}))
     assert "| obstacle2d | 0.500 +- 0.000 (paper 0.971 +- 0.018) | 0.500 +- 0.000 |" in table

@@ -13,7 +13,7 @@ import pytest
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.run import init
-from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, results
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, results, tables
 from mqd_jax.experiment import progress as progress_lib
 
 TINY = ["--generations", "4", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--chunk", "2",
@@ -233,7 +233,7 @@ def test_a_bad_count_is_one_line_without_the_usage(argv, capsys):
 
 
 def test_json_and_markdown_written_by_mqd_jax_prove_themselves(tmp_path):
-    results.write_markdown(["| a |"], str(tmp_path / "table1.md"), show=False)
+    tables.write_markdown(["| a |"], str(tmp_path / "table1.md"), show=False)
     assert manifest.carries_provenance(str(tmp_path / "table1.md"))
     (tmp_path / "mine.md").write_text("| a |\n\n<!-- mqd-jax: not json -->\n")
     (tmp_path / "fifo.md").unlink(missing_ok=True)

@@ -19,7 +19,7 @@ import mqd_jax
 from mqd_jax import Config, Task
 from mqd_jax.core import registry
 from mqd_jax.core.task import BEHAVIOR_DIMS
-from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, plots, provenance, results
+from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, plots, provenance, results, tables
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16"]
@@ -258,7 +258,7 @@ def test_tables_and_figures_are_written_whole(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "fsync", disk_full)
     with pytest.raises(OSError):
-        results.write_markdown(["the new table"], str(table))
+        tables.write_markdown(["the new table"], str(table))
     plt = plots.pyplot()
     with pytest.raises(OSError):
         plots.save(plt.figure(), str(figure))

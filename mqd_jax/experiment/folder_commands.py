@@ -14,7 +14,7 @@ import numpy as np
 
 from mqd_jax import adaptation
 from mqd_jax.core.run import get_task
-from mqd_jax.experiment import files, folders, manifest, migrations, plots, results, shell
+from mqd_jax.experiment import files, folders, manifest, messages, migrations, plots, results, tables
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.messages import count_of, say_removed
 from mqd_jax.experiment.provenance import provenance
@@ -36,7 +36,7 @@ def adapt(args: argparse.Namespace) -> None:
         tasks = args.tasks or [t for t, by in results.load_runs(args.dir).items() if "mqd" in by]
         if not tasks:
             raise ValueError(f"{args.dir!r} holds no M-QD runs to adapt: run "
-                             f"`{shell.command('mqd', 'sweep', '--algorithms', 'mqd', ('--out', args.dir))}` first")
+                             f"`{messages.command('mqd', 'sweep', '--algorithms', 'mqd', ('--out', args.dir))}` first")
         steps = progress_lib.Steps("adapt", len(tasks) * len(adaptation.METHODS), "method")
         for task in tasks:
             cfg, keys, states = results.load_states(args.dir, task)
@@ -78,7 +78,7 @@ def tabulate(out: str, pair: tuple[int, int] | None = None, show: str | None = N
     if pair is not None and not any(max(pair) < d for d in dims.values()):  # before anything is written
         plots.projections(max(dims.values()), pair)  # raises, naming the dimensions
     results.remove_derived(out)
-    results.write_markdown(results.tables(runs, results.missing(out)), os.path.join(out, "table1.md"),
+    tables.write_markdown(tables.table_one(runs, results.missing(out)), os.path.join(out, "table1.md"),
                            show in (None, "table1.md"))
     for task, by_alg in runs.items():
         plots.figure2(get_task(next(iter(by_alg.values())).cfg), task, by_alg,
@@ -93,7 +93,7 @@ def tabulate(out: str, pair: tuple[int, int] | None = None, show: str | None = N
         print(f"left out the adaptation results of {', '.join(stale)}: their M-QD runs changed since `mqd adapt`; "
               f"run `mqd adapt {out} --tasks {' '.join(stale)}` again")
     if found:
-        results.write_markdown(results.adaptation_table(found), os.path.join(out, "adaptation.md"),
+        tables.write_markdown(tables.adaptation_table(found), os.path.join(out, "adaptation.md"),
                                show in (None, "adaptation.md"))
         plots.adaptation_figure(found, "error", "behavioral error", os.path.join(out, "fig3_adaptation_error.png"))
         plots.adaptation_figure(found, "steps", "adaptation steps", os.path.join(out, "fig4_adaptation_steps.png"))
@@ -112,14 +112,14 @@ def render(args: argparse.Namespace) -> None:
         raise ValueError(f"{args.dir!r} does not exist: give the folder a `mqd run` wrote")
     if manifest.kind(args.dir) == "sweep":
         raise ValueError(f"{args.dir!r} is a folder of `mqd sweep`: `mqd render` takes a folder of `mqd run` "
-                         f"(`{shell.command('mqd', 'plot', args.dir)}` draws a sweep's repertoires)")
+                         f"(`{messages.command('mqd', 'plot', args.dir)}` draws a sweep's repertoires)")
     paths = [os.path.join(args.dir, f) for f in ("metrics.json", "repertoire.npz")]
     missing = [f for f in paths if not os.path.lexists(f)]
     if missing:
         raise ValueError(f"{missing[0]!r} is missing: {args.dir!r} is not a whole folder of `mqd run` (metrics.json, "
                          "repertoire.npz)")
-    repair = (f"the `mqd run` that made it, `{shell.command('mqd', 'run', '--resume', ('--out', args.dir))}`, writes "
-              "it again from its checkpoint")
+    resume = messages.command("mqd", "run", "--resume", ("--out", args.dir))
+    repair = f"the `mqd run` that made it, `{resume}`, writes it again from its checkpoint"
     saved = files.read_json(paths[0], repair)
     if not isinstance(saved.get("config"), dict):
         raise ValueError(f"{args.dir!r} is not a folder of `mqd run` (no config in metrics.json): {repair}")

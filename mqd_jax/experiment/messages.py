@@ -1,8 +1,12 @@
-"""What the command line prints of its work: files removed or set aside, counts."""
+"""What the command line prints: files removed or set aside, counts, and the commands it suggests, written so that
+they run as printed when pasted into a POSIX shell: every word quoted, a flag's value joined to it with `=` (an
+--out of `-r` is not taken for a flag), and a word with a newline or another control character in bash's `$'...'`
+quoting, so that the hint stays on one line."""
 
 from __future__ import annotations
 
 import os
+import shlex
 
 
 def say_removed(paths: list[str], why: str) -> None:
@@ -19,3 +23,17 @@ def count_of(n: int, noun: str) -> str:
     """'1 skill', '3 skills'."""
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
+
+def word(text: str) -> str:
+    """`text` as one shell word on one line."""
+    if text.isprintable():
+        return shlex.quote(text)
+    escaped = "".join(c if c.isprintable() and c not in "'\\" else
+                      "\\" + c if c in "'\\" else
+                      f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}" for c in text)
+    return f"$'{escaped}'"
+
+
+def command(*words: str | tuple[str, str]) -> str:
+    """The command of `words`: a str is a word, a (flag, value) pair the word `flag=value`."""
+    return " ".join(f"{w[0]}={word(w[1])}" if isinstance(w, tuple) else word(w) for w in words)

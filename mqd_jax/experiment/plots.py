@@ -22,7 +22,8 @@ from mqd_jax.adaptation import METHODS
 from mqd_jax.core.task import Task
 from mqd_jax.experiment.folders import write_atomically
 from mqd_jax.experiment.provenance import provenance
-from mqd_jax.experiment.results import NAMES, Runs
+from mqd_jax.experiment.results import Runs
+from mqd_jax.experiment.tables import NAMES
 
 
 def pyplot() -> Any:

@@ -19,7 +19,7 @@ import numpy as np
 
 from mqd_jax.core.config import Config
 from mqd_jax.core.run import State, get_task
-from mqd_jax.experiment import checkpoint, files, folders, manifest, migrations, plots, results, shell
+from mqd_jax.experiment import checkpoint, files, folders, manifest, messages, migrations, plots, results, tables
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.flags import RUN_DEFAULTS, SEEDS, config_from_flags, flag_given, is_seed
 from mqd_jax.experiment.messages import count_of, say_removed
@@ -59,7 +59,7 @@ def _check_file(path: str) -> None:
 def _resumed(args: argparse.Namespace, path: str) -> tuple[Config, int]:
     """The config and seed of the run saved in `args.out` (its manifest, else its checkpoint): what `--resume`
     continues. Flags given must agree with them: refused (ValueError) otherwise, naming each."""
-    hint = shell.command("mqd", "run", "--resume", ("--out", args.out))
+    hint = messages.command("mqd", "run", "--resume", ("--out", args.out))
     saved = manifest.identity(args.out)
     if not (isinstance(saved, dict) and isinstance(saved.get("config"), dict) and is_seed(saved.get("seed"))):
         try:
@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> None:
         raise ValueError("--resume and --overwrite together: --resume continues the run in the folder, --overwrite "
                          "starts it afresh; give one")
     path = os.path.join(args.out, "checkpoint.msgpack")
-    resume = shell.command("mqd", "run", "--resume", ("--out", args.out))
+    resume = messages.command("mqd", "run", "--resume", ("--out", args.out))
     watched = [progress_lib.Progress()]  # the run's progress, once it has one: its `done` generations are saved
 
     def interrupted() -> str:
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> None:
                 fate = "sets it aside as checkpoint.msgpack.damaged (never deletes it)"
             raise ValueError(f"{e}; the run cannot continue from it. {fresh} starts it afresh and {fate}") from e
         meta = {"config": cfg.to_dict(), "seed": seed, "key": np.asarray(key).tolist(),
-                "coverage_measured": results.coverage_measure(cfg, metrics["coverage"][-1]),
+                "coverage_measured": tables.coverage_measure(cfg, metrics["coverage"][-1]),
                 "implementation": results.implementation(cfg), "provenance": provenance()}
         folders.write_json(os.path.join(args.out, "metrics.json"), {**meta, "metrics": metrics})
         n = int(state.repertoire.count)
