@@ -5,7 +5,7 @@
 A pool of 8 x population uniform predicted behaviors in [0, 1]^2 beside 300 random skills (t_dist 0.02,
 quality_share 0.1, every candidate wanted): the median of 3 jitted calls (compile excluded) of `greedy_diverse`
 (one at a time) and `rounds_diverse`, and how many niches each choice opens (brute force, in order). What sets
-`acquisition.ROUNDS_FROM`.
+`diverse.ROUNDS_FROM`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 import report
 
-from mqd_jax.emitters.acquisition import Judged, greedy_diverse, rounds_diverse
+from mqd_jax.emitters.acquisition import Judged
+from mqd_jax.emitters.diverse import greedy_diverse, rounds_diverse
 
 
 def opened(b: np.ndarray, rows: np.ndarray, skills: np.ndarray, t_dist: float) -> int:

@@ -30,7 +30,7 @@ _WHERE = {
     "Task": "mqd_jax.core.task",
     "presets": "mqd_jax.emitters",
     "Budgeted": "mqd_jax.emitters.acquisition",
-    "Diverse": "mqd_jax.emitters.acquisition",
+    "Diverse": "mqd_jax.emitters.diverse",
     "Threshold": "mqd_jax.emitters.acquisition",
     "Anchoring": "mqd_jax.emitters.anchoring",
     "IsoLine": "mqd_jax.emitters.baselines",

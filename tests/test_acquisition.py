@@ -16,8 +16,9 @@ from mqd_jax.core import algorithms
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.emitter import Evaluated
 from mqd_jax.core.repertoire import AddStatus, Repertoire
-from mqd_jax.emitters import acquisition
-from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, parent_factor
+from mqd_jax.emitters import diverse
+from mqd_jax.emitters.acquisition import Budgeted, Judged, Threshold
+from mqd_jax.emitters.diverse import Diverse, parent_factor
 from mqd_jax.emitters.model_emitter import ModelEmitterState, _share, opener_auc
 from mqd_jax.emitters.pursuit import Fallback, FallbackState
 from mqd_jax.experiment.migrations import config_from
@@ -25,8 +26,8 @@ from mqd_jax.surrogate import model
 from mqd_jax.surrogate.gate import Gate
 from mqd_jax.surrogate.surrogate import Surrogate, SurrogateState
 
-greedy_diverse, rounds_diverse = compiled(acquisition.greedy_diverse), compiled(acquisition.rounds_diverse)
-pool_neighbours = compiled(acquisition.pool_neighbours)
+greedy_diverse, rounds_diverse = compiled(diverse.greedy_diverse), compiled(diverse.rounds_diverse)
+pool_neighbours = compiled(diverse.pool_neighbours)
 
 
 def select(rule, *args):
@@ -428,15 +429,13 @@ def test_rounds_put_unwanted_candidates_last_and_nan_predictions_last_of_the_wan
 
 
 def test_diverse_chooses_in_rounds_from_rounds_from_rows_and_one_at_a_time_below(monkeypatch):
-    from mqd_jax.emitters import acquisition
-
     rep = repertoire_of([[0.5, 0.5]], [0.5])
     pool = judged(jax.random.uniform(jax.random.PRNGKey(0), (40, 2)), jax.random.uniform(jax.random.PRNGKey(1), (40,)),
                   rep)
     args = (jax.random.PRNGKey(0), (), pool, rep, jnp.ones(40, bool), Config().params(), 10)
     greedy = select(Diverse(4, selection="greedy"), *args)[0]
     np.testing.assert_array_equal(select(Diverse(4), *args)[0], greedy)  # "auto" below ROUNDS_FROM: bit for bit
-    monkeypatch.setattr(acquisition, "ROUNDS_FROM", 10)
+    monkeypatch.setattr(diverse, "ROUNDS_FROM", 10)
     np.testing.assert_array_equal(select(Diverse(4), *args)[0], select(Diverse(4, selection="rounds"), *args)[0])
 
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from mqd_jax import Anchoring, IsoLine, ModelEmitter, Params, Steering, Surrogate, Task, Validity, run_mqd
-from mqd_jax.emitters.acquisition import Budgeted, Diverse, Judged, Threshold, ranking
+from mqd_jax.emitters.acquisition import Budgeted, Judged, Threshold, ranking
+from mqd_jax.emitters.diverse import Diverse
 from mqd_jax.emitters.model_emitter import auc
 from mqd_jax.emitters.pursuit import Fallback
 

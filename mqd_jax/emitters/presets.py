@@ -33,10 +33,11 @@ from typing import Any
 from mqd_jax.core import algorithms
 from mqd_jax.core.checks import is_int, is_real
 from mqd_jax.core.emitter import Emitter
-from mqd_jax.emitters.acquisition import Budgeted, Diverse, Threshold
+from mqd_jax.emitters.acquisition import Budgeted, Threshold
 from mqd_jax.emitters.anchoring import Anchoring
 from mqd_jax.emitters.baselines import IsoLine, Uniform
 from mqd_jax.emitters.curiosity import Curiosity
+from mqd_jax.emitters.diverse import Diverse
 from mqd_jax.emitters.model_emitter import ModelEmitter
 from mqd_jax.emitters.pursuit import Fallback
 from mqd_jax.emitters.steering import Steering
