@@ -25,7 +25,8 @@ from accelerator_timings import generation_parts, inserted
 
 import mqd_jax
 from mqd_jax import Config, init
-from mqd_jax.core.run import _update_emitter, ask, get_task, run_generations
+from mqd_jax.core.run import _update_emitter, ask, run_generations
+from mqd_jax.core.state import get_task
 
 
 def timed(fn: Callable[..., Any], *args: Any, static: tuple[int, ...] = ()) -> tuple[float, float, int]:

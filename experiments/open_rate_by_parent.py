@@ -27,7 +27,7 @@ from opener_signals import _nearest_skill
 from sample_efficiency import configured
 
 from mqd_jax import ask, tell
-from mqd_jax.core.run import get_task, init
+from mqd_jax.core.state import get_task, init
 
 FIFTHS = 5
 

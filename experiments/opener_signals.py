@@ -59,7 +59,8 @@ from extra_tasks import register_experiment_tasks
 from mqd_jax import Config, ask, tell
 from mqd_jax.core import repertoire as repertoire_lib
 from mqd_jax.core.archive import Archive
-from mqd_jax.core.run import get_task, init, run_generations
+from mqd_jax.core.run import run_generations
+from mqd_jax.core.state import get_task, init
 from mqd_jax.core.task import Task
 from mqd_jax.emitters.parts import Pooled
 from mqd_jax.surrogate import model

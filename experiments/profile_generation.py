@@ -20,7 +20,8 @@ import report
 
 from mqd_jax import Config, ModelEmitter, init
 from mqd_jax.core import coverage, repertoire
-from mqd_jax.core.run import ask, generation, get_task, run_generations
+from mqd_jax.core.run import ask, generation, run_generations
+from mqd_jax.core.state import get_task
 
 
 def main() -> None:

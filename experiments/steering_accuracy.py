@@ -22,7 +22,7 @@ from extra_tasks import register_experiment_tasks
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core import selection
-from mqd_jax.core.run import get_task
+from mqd_jax.core.state import get_task
 from mqd_jax.emitters import steering
 
 CHILDREN = 800

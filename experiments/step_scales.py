@@ -33,7 +33,8 @@ from extra_tasks import register_experiment_tasks
 from opener_signals import POOL, _nearest_skill, _predictions, precision, top_rows
 
 from mqd_jax import Config
-from mqd_jax.core.run import get_task, init, run_generations
+from mqd_jax.core.run import run_generations
+from mqd_jax.core.state import get_task, init
 from mqd_jax.emitters.baselines import IsoLine
 
 SCALES = (0.25, 0.5, 1.0, 2.0)

@@ -36,7 +36,7 @@ import numpy as np
 from mqd_jax.core import neighbours, pytree
 from mqd_jax.core.checks import check_traced, is_int
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import State, check_state, get_task
+from mqd_jax.core.state import State, check_state, get_task
 from mqd_jax.core.task import Task
 from mqd_jax.surrogate import model
 

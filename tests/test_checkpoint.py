@@ -9,7 +9,7 @@ import pytest
 from flax import serialization
 
 from mqd_jax import Config, run_mqd
-from mqd_jax.core.run import get_task
+from mqd_jax.core.state import get_task
 from mqd_jax.experiment import checkpoint, cli, files, folders, results
 
 CFG = Config(task="obstacle2d", algorithm="mqd", algorithm_options=dict(warmup_samples=64, num_batches=20),

@@ -15,6 +15,7 @@ from envs import arena2d, contact, push
 from mqd_jax import Surrogate, Task, run_mqd
 from mqd_jax.core import registry
 from mqd_jax.core import run as run_lib
+from mqd_jax.core import state as state_lib
 from mqd_jax.core.task import check_outputs, check_task
 from mqd_jax.surrogate import model
 from mqd_jax.surrogate.gate import Gate
@@ -194,7 +195,7 @@ def test_broken_features_and_auxiliary_outputs_are_refused_before_a_run():
 
 def test_tell_needs_the_auxiliary_outputs_of_a_task_that_returns_them(tiny):
     cfg = tiny(task=flick(), algorithm="qd", max_generations=2)
-    state = run_lib.init(jax.random.PRNGKey(0), cfg)
+    state = state_lib.init(jax.random.PRNGKey(0), cfg)
     candidates = run_lib.ask(state, cfg)
     b, q, v, aux = flick().evaluate_with_auxiliary(candidates.actions, None, None)
     with pytest.raises(ValueError, match=r"pass auxiliary= \[16, 2\]"):

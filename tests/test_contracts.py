@@ -114,7 +114,7 @@ def test_without_checks_a_model_that_predicts_nan_is_a_warning_naming_the_surrog
 
 def test_the_checkpointed_runner_a_sweep_s_batch_and_ask_raise_a_broken_part_as_one_line(tmp_path):
     from mqd_jax import ask
-    from mqd_jax.core.run import init
+    from mqd_jax.core.state import init
     from mqd_jax.experiment.checkpoint import run_with_checkpoints
     from mqd_jax.experiment.sweep import run_batch
 

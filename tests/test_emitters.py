@@ -28,7 +28,7 @@ from mqd_jax import (
 from mqd_jax.core.emitter import action_bounds
 from mqd_jax.core.registry import make
 from mqd_jax.core.repertoire import Repertoire
-from mqd_jax.core.run import METRICS
+from mqd_jax.core.state import METRICS
 from mqd_jax.emitters.acquisition import Judged
 
 

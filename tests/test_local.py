@@ -9,7 +9,7 @@ from compiled import compiled
 
 from mqd_jax import Config, run_mqd
 from mqd_jax.core.emitter import Evaluated
-from mqd_jax.core.run import get_task
+from mqd_jax.core.state import get_task
 from mqd_jax.emitters import presets
 from mqd_jax.surrogate import protocol
 from mqd_jax.surrogate.local import LocalLinear, spd_solve

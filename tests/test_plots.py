@@ -10,7 +10,7 @@ from PIL import Image
 
 from mqd_jax import Task
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import get_task
+from mqd_jax.core.state import get_task
 from mqd_jax.experiment import plots, results
 
 

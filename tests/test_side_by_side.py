@@ -20,7 +20,7 @@ from mqd_jax import (
     run_mqd,
 )
 from mqd_jax.core.repertoire import AddStatus, Repertoire
-from mqd_jax.core.run import get_task
+from mqd_jax.core.state import get_task
 
 
 @dataclasses.dataclass(frozen=True)

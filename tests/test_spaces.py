@@ -13,7 +13,7 @@ from compiled import compiled
 
 from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import coverage
-from mqd_jax.core import run as run_lib
+from mqd_jax.core import state as state_lib
 from mqd_jax.experiment import cli
 from mqd_jax.experiment import progress as progress_lib
 
@@ -110,7 +110,7 @@ def test_a_run_measures_the_coverage_of_its_final_repertoire(dims):
                  archive_capacity=16, t_dist=0.2, coverage_resolution=64 if dims == 3 else 256)
     state, m = run_mqd(jax.random.PRNGKey(0), cfg)
     assert int(m["replaced"].sum()) > 0  # some balls were unstamped
-    points, reachable = run_lib.coverage_points(cfg)
+    points, reachable = state_lib.coverage_points(cfg)
     if points is None:
         cells = coverage.axis_cells(dims, cfg.coverage_resolution)
         points = coverage.cell_centres(np.zeros(dims), np.ones(dims), cells).reshape(-1, dims)
@@ -121,7 +121,7 @@ def test_a_run_measures_the_coverage_of_its_final_repertoire(dims):
     for b in behaviors:
         near |= ((points - b) ** 2).sum(1) <= cfg.t_dist**2
     assert float(m["coverage"][-1]) == pytest.approx((near & reachable).sum() / reachable.sum(), abs=1e-6)
-    assert run_lib.coverage_method(cfg) == (coverage.GRID if dims in (1, 3) else coverage.MONTE_CARLO)
+    assert state_lib.coverage_method(cfg) == (coverage.GRID if dims in (1, 3) else coverage.MONTE_CARLO)
 
 
 def test_mqd_predicts_and_adapts_in_five_dimensions():

@@ -19,7 +19,7 @@ import mqd_jax
 from mqd_jax import Config, adapt, run_mqd
 from mqd_jax.core import diagnostics, registry
 from mqd_jax.core.config import check_params
-from mqd_jax.core.run import init
+from mqd_jax.core.state import init
 from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, provenance, results
 from mqd_jax.experiment.sweep import grid, param_names, run_batch, seed_keys
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mqd_jax import Config, run_mqd
-from mqd_jax.core.run import init
+from mqd_jax.core.state import init
 from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, results, tables
 from mqd_jax.experiment import progress as progress_lib
 

@@ -41,7 +41,8 @@ from mqd_jax.core import checks, diagnostics, pytree
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import METRICS, State, check_state, get_task, init, metric_dtypes, run_generations
+from mqd_jax.core.run import run_generations
+from mqd_jax.core.state import METRICS, State, check_state, get_task, init, metric_dtypes
 from mqd_jax.experiment import files, interrupts, migrations
 from mqd_jax.experiment.folders import differences, write_atomically
 from mqd_jax.experiment.provenance import provenance

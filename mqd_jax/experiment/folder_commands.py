@@ -13,7 +13,7 @@ import jax
 import numpy as np
 
 from mqd_jax import adaptation
-from mqd_jax.core.run import get_task
+from mqd_jax.core.state import get_task
 from mqd_jax.experiment import files, folders, manifest, messages, migrations, plots, results, tables
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.messages import count_of, say_removed

@@ -13,7 +13,7 @@ import numpy as np
 
 from mqd_jax.core import algorithms
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import get_task, kept_features
+from mqd_jax.core.state import get_task, kept_features
 
 
 def config_from(saved: dict[str, Any]) -> Config:

@@ -173,7 +173,7 @@ def run_figure(task: Task, metrics: dict[str, np.ndarray], behaviors: np.ndarray
 def state_fig(state: Any, metrics: dict[str, Any], cfg: Any, title: str | None = None) -> Any:
     """`run_fig` of a run's final `state` and its `metrics` (what `run_mqd(key, cfg)` returns): the figure, not
     saved (a notebook shows it)."""
-    from mqd_jax.core.run import get_task
+    from mqd_jax.core.state import get_task
 
     rep = jax.device_get(state.repertoire)
     n = int(rep.count)

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from mqd_jax.core.config import Config, check_params
-from mqd_jax.core.run import init
+from mqd_jax.core.state import init
 from mqd_jax.experiment import files, folders
 from mqd_jax.experiment.checkpoint import run_chunks
 

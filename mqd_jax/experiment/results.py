@@ -48,7 +48,7 @@ import numpy as np
 
 from mqd_jax.core import algorithms, registry
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import State, get_task
+from mqd_jax.core.state import State, get_task
 from mqd_jax.experiment import checkpoint, files, manifest, messages, migrations
 from mqd_jax.experiment.files import Damaged, read_json, read_npz
 from mqd_jax.experiment.folders import differences, write_json, write_npz

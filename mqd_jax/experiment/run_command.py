@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import State, get_task
+from mqd_jax.core.state import State, get_task
 from mqd_jax.experiment import checkpoint, files, folders, manifest, messages, migrations, plots, results, tables
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.flags import RUN_DEFAULTS, SEEDS, config_from_flags, flag_given, is_seed

@@ -35,7 +35,8 @@ from mqd_jax.core import checks, diagnostics
 from mqd_jax.core.checks import is_int
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.params import Params
-from mqd_jax.core.run import State, check_size, get_task, init, run_generations
+from mqd_jax.core.run import run_generations
+from mqd_jax.core.state import State, check_size, get_task, init
 from mqd_jax.experiment import interrupts
 
 Metrics = dict[str, np.ndarray]

@@ -15,7 +15,7 @@ import numpy as np
 
 from mqd_jax.core import algorithms
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import State, check_size, get_task
+from mqd_jax.core.state import State, check_size, get_task
 from mqd_jax.experiment import checkpoint, files, folders, manifest, results, sweep
 from mqd_jax.experiment import progress as progress_lib
 from mqd_jax.experiment.flags import config_from_flags

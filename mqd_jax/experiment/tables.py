@@ -11,7 +11,7 @@ import numpy as np
 
 from mqd_jax.core import algorithms, coverage
 from mqd_jax.core.config import Config
-from mqd_jax.core.run import coverage_method, coverage_points, get_task
+from mqd_jax.core.state import coverage_method, coverage_points, get_task
 from mqd_jax.experiment import files, manifest
 from mqd_jax.experiment.folders import write_atomically
 from mqd_jax.experiment.provenance import provenance
