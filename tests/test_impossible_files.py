@@ -1,7 +1,9 @@
 """Files that parse, carry a correct checksum and still say something no run makes are refused, naming the field;
 a sweep killed between a batch's files finishes it from its checkpoint; hints run as printed; sizes are checked
-before anything is allocated (`checkpoint._check_values`, `files.read_json`, `shell`)."""
+before anything is allocated; a run folder's decisions, each without running anything (`checkpoint._check_values`,
+`files.read_json`, `messages.command`, `run_folder.RunFolder`)."""
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -15,6 +17,7 @@ from flax import serialization
 from mqd_jax import Config
 from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, messages, progress, results
 from mqd_jax.experiment import sweep as sweep_lib
+from mqd_jax.experiment.run_folder import RunFolder
 
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--algorithm",
         "qd", "--task", "obstacle2d"]
@@ -210,3 +213,22 @@ def test_the_compile_time_record_never_follows_a_planted_link(tmp_path):
     os.unlink(cache / progress.COMPILE_TIMES)
     progress.remember_compile(str(cache), cfg, 12.5)  # a plain folder: written
     assert progress.last_compile(str(cache), cfg) == 12.5
+
+
+def test_the_run_folder_decides_and_words_each_refusal_without_running_anything(run, tmp_path):
+    folder = RunFolder(str(run))
+    saved = manifest.identity(str(run))
+    cfg = Config.from_dict(saved["config"])
+    assert folder.progress() == (2, 2) and saved["seed"] == 0
+    with pytest.raises(ValueError, match=r"holds this run, finished \(2 generations\): its results are there"):
+        folder.claim(cfg, 0, resume=False, overwrite=False)
+    other = dataclasses.replace(cfg, population_size=16)
+    with pytest.raises(ValueError, match=r"another run \(population_size: saved 8, now 16\).*--overwrite.*deletes "
+                                         r"checkpoint.msgpack, .*; its checkpoint holds 2 of 2 generations"):
+        folder.claim(other, 0, resume=False, overwrite=False)
+    with pytest.raises(ValueError, match="--resume and --overwrite together"):
+        RunFolder.check_request(resume=True, overwrite=True)
+    with pytest.raises(ValueError, match="holds no checkpoint; run without --resume"):
+        RunFolder(str(tmp_path)).check_resumable()
+    assert RunFolder(str(tmp_path)).interrupted(0) == "interrupted before a generation was saved; nothing was saved"
+    assert folder.interrupted(5) == f"interrupted at generation 5; `{folder.resume_command()}` continues from there"
