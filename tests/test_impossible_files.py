@@ -1,7 +1,7 @@
 """Files that parse, carry a correct checksum and still say something no run makes are refused, naming the field;
 a sweep killed between a batch's files finishes it from its checkpoint; hints run as printed; sizes are checked
 before anything is allocated; a run folder's decisions, each without running anything (`checkpoint._check_values`,
-`files.read_json`, `messages.command`, `run_folder.RunFolder`)."""
+`files.read_json`, `messages.command`, `run_folder.RunFolder`, `sweep_folder.SweepFolder`)."""
 
 import dataclasses
 import hashlib
@@ -18,6 +18,7 @@ from mqd_jax import Config
 from mqd_jax.experiment import checkpoint, cli, files, folders, manifest, messages, progress, results
 from mqd_jax.experiment import sweep as sweep_lib
 from mqd_jax.experiment.run_folder import RunFolder
+from mqd_jax.experiment.sweep_folder import SweepFolder
 
 TINY = ["--generations", "2", "--population", "8", "--capacity", "64", "--archive-capacity", "16", "--algorithm",
         "qd", "--task", "obstacle2d"]
@@ -169,6 +170,20 @@ def test_a_sweep_killed_between_a_batch_s_files_finishes_it_from_its_checkpoint(
     saved = results.load_runs(str(tmp_path))["obstacle2d"]["qd"]
     assert saved.metrics["coverage"].shape == (2, 6) and np.array_equal(saved.count, npz["count"])
     assert np.array_equal(saved.behaviors, npz["behaviors"])
+    other = dataclasses.replace(saved.cfg, population_size=16)  # the folder's decisions, without running a batch
+    before = sorted(os.listdir(tmp_path))
+    with pytest.raises(ValueError, match=r"refused: .*population_size: saved 8, now 16.*Pass --overwrite"):
+        SweepFolder(str(tmp_path)).claim([(other, saved.keys)], overwrite=False, rerun_stale=False)
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_the_sweep_folder_says_where_ctrl_c_stopped_it(tmp_path):
+    folder = SweepFolder(str(tmp_path))
+    assert folder.interrupted("before the first batch") == "interrupted before the first batch; no batch had finished"
+    folder.finished = 2
+    assert folder.interrupted("in obstacle2d qd, 2 seeds", 4, 6) == (
+        "interrupted in obstacle2d qd, 2 seeds at generation 4 of 6: its checkpoint keeps them, and the same command "
+        f"continues this batch from generation 4; the 2 finished batches in {str(tmp_path)!r} are kept")
 
 
 def test_a_billion_seeds_are_refused_in_one_line_before_a_key_is_made(tmp_path, capsys, monkeypatch):

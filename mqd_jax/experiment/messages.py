@@ -19,9 +19,9 @@ def say_removed(paths: list[str], why: str) -> None:
         print(f"{why}: set aside (damaged, never deleted) as {', '.join(os.path.basename(p) for p in aside)}")
 
 
-def count_of(n: int, noun: str) -> str:
-    """'1 skill', '3 skills'."""
-    return f"{n} {noun}{'' if n == 1 else 's'}"
+def count_of(n: int, noun: str, plural: str | None = None) -> str:
+    """'1 skill', '3 skills' ('2 finished batches' with its `plural`)."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
 
 
 def word(text: str) -> str:
