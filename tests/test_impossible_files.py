@@ -236,11 +236,11 @@ def test_the_run_folder_decides_and_words_each_refusal_without_running_anything(
     cfg = Config.from_dict(saved["config"])
     assert folder.progress() == (2, 2) and saved["seed"] == 0
     with pytest.raises(ValueError, match=r"holds this run, finished \(2 generations\): its results are there"):
-        folder.claim(cfg, 0, resume=False, overwrite=False)
+        folder.claim(cfg, 0, resume=False, overwrite=False, saved=folder.progress())
     other = dataclasses.replace(cfg, population_size=16)
     with pytest.raises(ValueError, match=r"another run \(population_size: saved 8, now 16\).*--overwrite.*deletes "
                                          r"checkpoint.msgpack, .*; its checkpoint holds 2 of 2 generations"):
-        folder.claim(other, 0, resume=False, overwrite=False)
+        folder.claim(other, 0, resume=False, overwrite=False, saved=folder.progress())
     with pytest.raises(ValueError, match="--resume and --overwrite together"):
         RunFolder.check_request(resume=True, overwrite=True)
     with pytest.raises(ValueError, match="holds no checkpoint; run without --resume"):

@@ -23,7 +23,7 @@ import numpy as np
 
 from mqd_jax.core.config import Config, check_params
 from mqd_jax.core.state import init
-from mqd_jax.experiment import files, folders
+from mqd_jax.experiment import files
 from mqd_jax.experiment.checkpoint import run_chunks
 
 
@@ -225,7 +225,7 @@ def remember_compile(folder: str | None, cfg: Config, seconds: float) -> None:
         times = {}
     times[_config_key(cfg)] = round(seconds, 2)
     with contextlib.suppress(OSError, ValueError):  # never through a link, nor into anything but a regular file
-        folders.write_atomically(path, json.dumps(times).encode())
+        files.write(path, json.dumps(times).encode())
 
 
 def run(key: jax.Array, cfg: Config, params: Any = None, chunk: int | None = None,

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> None:
         args.task_now = cfg.task_name
         progress = progress_lib.for_output("", cfg.max_generations, cfg, args.cache_folder, args.cache)
         saved = folder.progress()
-        for paths, why in folder.claim(cfg, seed, args.resume, args.overwrite):
+        for paths, why in folder.claim(cfg, seed, args.resume, args.overwrite, saved):
             say_removed(paths, why)
 
         def start(state: State, metrics: dict[str, np.ndarray]) -> None:

@@ -89,11 +89,12 @@ class RunFolder:
         if not files.lexists(self.checkpoint):
             raise ValueError(f"--resume: {self.out!r} holds no checkpoint; run without --resume to start")
 
-    def claim(self, cfg: Config, seed: int, resume: bool, overwrite: bool) -> list[tuple[list[str], str]]:
+    def claim(self, cfg: Config, seed: int, resume: bool, overwrite: bool,
+              saved: tuple[int, int] | None) -> list[tuple[list[str], str]]:
         """Makes the folder this run's (`folders.claim`), refusing another run's results unless `overwrite`, and a
         checkpoint of this run without `resume` (unless `overwrite`, which deletes it, or sets it aside if
-        damaged). Returns what was removed or set aside, each with why, for the command to say."""
-        saved = self.progress()
+        damaged); `saved`: the checkpoint's `progress()`, read once by the caller. Returns what was removed or set
+        aside, each with why, for the command to say."""
         stake = f"; its checkpoint holds {saved[0]} of {saved[1]} generations" if saved else ""
         said = [(folders.claim(self.out, "run", {"config": cfg.to_dict(), "seed": seed}, RUN_FILES, overwrite,
                                upgrade=upgraded_identity, check=check_file, at_stake=stake), "--overwrite")]

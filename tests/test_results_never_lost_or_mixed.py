@@ -1,4 +1,4 @@
-"""Results are never lost or mixed: one test per case of the [trust] issue, and the command line's small promises."""
+"""Results are never lost or mixed: one test per case, and the command line's small promises."""
 
 import dataclasses
 import hashlib

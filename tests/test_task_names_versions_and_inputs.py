@@ -1,4 +1,4 @@
-"""[trust-2]: one implementation per task name, one version in one place, --overwrite and --resume that lose
+"""One implementation per task name, one version in one place, --overwrite and --resume that lose
 nothing, task definitions checked before anything is allocated, and the command line's small promises."""
 
 import dataclasses

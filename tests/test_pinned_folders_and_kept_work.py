@@ -1,4 +1,4 @@
-"""[trust-4] (issue 64): a folder pinned for the whole command, only what mqd-jax can prove it wrote removed, a sweep's
+"""A folder pinned for the whole command, only what mqd-jax can prove it wrote removed, a sweep's
 stop that keeps the work, `--resume` from the saved config, and the smaller ways to lose a user's files or hours.
 Each case failed on 0.16's main (f8099be). The cases that need a made sweep folder (FIFOs, bounded reads,
 checkpoints that parse but are wrong) are in test_file_faults.py's [trust-4] section."""
